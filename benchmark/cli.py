@@ -1,0 +1,113 @@
+"""Command line: ``python -m benchmark <command>`` (see ``--help``)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+
+def _cmd_list(args) -> int:
+    from benchmark.body import BODY_KINDS
+    from benchmark.catalog import dataset_rows, prior_rows, profile_rows, table_rows
+
+    sections = [
+        ("tables", table_rows()),
+        ("priors", prior_rows()),
+        ("datasets", dataset_rows()),
+        ("body models", [(k, v) for k, v in BODY_KINDS.items()]),
+        ("profiles", profile_rows()),
+    ]
+    for title, rows in sections:
+        if args.what and args.what != title.split()[0]:
+            continue
+        print(f"{title}:")
+        if not rows:
+            print("  (none)")
+        width = max((len(r[0]) for r in rows), default=0)
+        for name, desc in rows:
+            print(f"  {name.ljust(width)}  {desc}")
+        print()
+    return 0
+
+
+def _cmd_data_convert(args) -> int:
+    from benchmark.loaders.convert import convert
+
+    motion = convert(args.input, args.out, fps=args.fps, overwrite=args.force)
+    print(f"wrote {args.out}: {motion.num_frames} frames, {motion.duration:.2f} s, {motion.fps:.1f} fps ({motion.source})")
+    return 0
+
+
+def _cmd_data_build(args) -> int:
+    from benchmark.synthetic.splits import build_split
+
+    motions = build_split(args.split, seed=args.seed, rebuild=args.rebuild)
+    total = sum(m.duration for m in motions)
+    print(f"split {args.split!r}: {len(motions)} sequences, {total / 60:.1f} min of motion")
+    return 0
+
+
+def _cmd_perf(args) -> int:
+    from benchmark.perf import run_perf
+
+    run_perf(device=args.device, quick=not args.full)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmark",
+        description="Reference benchmark harness for human motion priors.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("list", help="tables, priors, datasets, body models, profiles")
+    p.add_argument("what", nargs="?", choices=["tables", "priors", "datasets", "body", "profiles"], default=None)
+    p.set_defaults(func=_cmd_list)
+
+    p = sub.add_parser("data", help="motion data: convert files, build the synthetic splits")
+    dsub = p.add_subparsers(dest="data_command", metavar="DATA_COMMAND")
+    c = dsub.add_parser("convert", help="AMASS .npz or BVH -> the harness's motion .npz",
+                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    c.add_argument("input")
+    c.add_argument("--out", required=True, help="output .npz (never overwritten without --force)")
+    c.add_argument("--fps", type=float, default=None, help="resample to this rate (default: keep the source rate)")
+    c.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    c.set_defaults(func=_cmd_data_convert)
+    b = dsub.add_parser("build", help="generate (or check the cache of) a synthetic split",
+                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    b.add_argument("split", choices=["test", "train", "val"])
+    b.add_argument("--seed", type=int, default=None, help="override the split's seed")
+    b.add_argument("--rebuild", action="store_true")
+    b.set_defaults(func=_cmd_data_build)
+
+    p = sub.add_parser("perf", help="speed of the Chamfer paths and the body skinning, measured side by side",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--full", action="store_true", help="larger sizes (slower)")
+    p.set_defaults(func=_cmd_perf)
+
+    try:
+        from benchmark.cli_run import add_run_commands
+    except ImportError:  # the protocol commands are optional while a checkout is incomplete
+        add_run_commands = None
+    if add_run_commands is not None:
+        add_run_commands(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0 if args.command is None else 2
+    try:
+        return int(args.func(args) or 0)
+    except (FileNotFoundError, FileExistsError, ValueError, KeyError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
