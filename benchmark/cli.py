@@ -90,12 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--full", action="store_true", help="larger sizes (slower)")
     p.set_defaults(func=_cmd_perf)
 
-    try:
-        from benchmark.cli_run import add_run_commands
-    except ImportError:  # the protocol commands are optional while a checkout is incomplete
-        add_run_commands = None
-    if add_run_commands is not None:
-        add_run_commands(sub)
+    from benchmark.cli_run import add_run_commands
+
+    add_run_commands(sub)
     return parser
 
 

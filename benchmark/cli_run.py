@@ -1,0 +1,139 @@
+"""The protocol commands: run, describe, check-prior, train, compare."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+log = logging.getLogger("benchmark")
+
+DEFAULT_PRIORS = ("no-prior", "vposer-slerp")
+
+
+def _device(name: str | None) -> str:
+    import torch
+
+    if name is None:
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError("--device cuda requested but no CUDA device is available (torch.cuda.is_available() is False)")
+    return name
+
+
+def _parse_pairs(items, what: str) -> dict:
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key or not value:
+            raise ValueError(f"{what} must look like NAME=VALUE, got {item!r}")
+        out[key] = value
+    return out
+
+
+def make_adapter(name: str, size: str = "embedded", weights: str | None = None, device: str = "cpu"):
+    from benchmark.registry import get_prior_class
+
+    cls = get_prior_class(name)
+    adapter = cls(size=size, weights=weights, device=device)
+    return adapter.to(device).eval()
+
+
+def _cmd_run(args) -> int:
+    from benchmark.body import get_body
+    from benchmark.catalog import get_profile, load_table_spec
+    from benchmark.protocols.table_run import run_table
+
+    spec = load_table_spec(args.table)
+    device = _device(args.device)
+    profile_name = args.profile or ("full" if device.startswith("cuda") else "quick")
+    profile = get_profile(profile_name)
+    print(f"table {args.table} (protocol v{spec['protocol_version']}), profile {profile_name!r}: {profile['description']}")
+    print(f"device {device}, seed {args.seed}, output {args.out}")
+    body = get_body(args.body, device=device)
+    result = run_table(
+        spec, profile, priors=args.prior or list(DEFAULT_PRIORS), body=body, device=device, seed=args.seed,
+        out_dir=Path(args.out), resume=args.resume, size=args.size, weights=_parse_pairs(args.weights, "--weights"),
+        data=args.data, backend=args.backend,
+    )
+    print()
+    print(result["markdown"])
+    print(f"written: {', '.join(str(p) for p in result['files'])}")
+    return 1 if result["failures"] else 0
+
+
+def _cmd_describe(args) -> int:
+    adapter = make_adapter(args.name, size=args.size, weights=args.weights, device="cpu")
+    print(adapter.describe())
+    print(f"parameters: {adapter.parameter_count():,}")
+    return 0
+
+
+def _cmd_check_prior(args) -> int:
+    from benchmark.conformance import check_prior
+
+    ok = check_prior(args.name, size=args.size, weights=args.weights)
+    return 0 if ok else 1
+
+
+def _cmd_train(args) -> int:
+    from benchmark.registry import get_prior_class
+
+    cls = get_prior_class(args.name)
+    if not hasattr(cls, "train_embedded"):
+        raise ValueError(f"prior {args.name!r} has no training recipe (no train_embedded classmethod)")
+    out = Path(args.out) if args.out else None
+    record = cls.train_embedded(out_dir=out, steps=args.steps, seed=args.seed, overwrite=args.force)
+    print(record)
+    return 0
+
+
+def _cmd_compare(args) -> int:
+    from benchmark.compare import main_compare
+
+    return main_compare(args.a, args.b, args.tol or [])
+
+
+def add_run_commands(sub) -> None:
+    fmt = argparse.ArgumentDefaultsHelpFormatter
+    p = sub.add_parser("run", help="run a table (e.g. table1) for some priors", formatter_class=fmt)
+    p.add_argument("table")
+    p.add_argument("--prior", action="append", help=f"prior name (repeatable); default: {' '.join(DEFAULT_PRIORS)}")
+    p.add_argument("--profile", default=None, help="smoke | quick | full (default: full on CUDA, quick on CPU)")
+    p.add_argument("--device", default=None, help="cpu | cuda (default: cuda when available)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="runs/latest", help="output directory (unit files, table JSON/MD/CSV/TeX)")
+    p.add_argument("--resume", choices=["only-missing", "never"], default="only-missing")
+    p.add_argument("--size", choices=["embedded", "paper"], default="embedded", help="prior size; paper needs --weights")
+    p.add_argument("--weights", action="append", metavar="PRIOR=PATH", help="official checkpoint for a prior")
+    p.add_argument("--body", default="anny", help="body model: anny | smpl | smplh | smplx[=PATH[:gender]]")
+    p.add_argument("--data", default=None, help="motion data: default synthetic test split; or a folder of harness/AMASS .npz files")
+    p.add_argument("--backend", choices=["local", "ray"], default="local")
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("describe", help="architecture summary and parameter count of a prior", formatter_class=fmt)
+    p.add_argument("name")
+    p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
+    p.add_argument("--weights", default=None)
+    p.set_defaults(func=_cmd_describe)
+
+    p = sub.add_parser("check-prior", help="conformance kit: run an adapter through a tiny table", formatter_class=fmt)
+    p.add_argument("name")
+    p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
+    p.add_argument("--weights", default=None)
+    p.set_defaults(func=_cmd_check_prior)
+
+    p = sub.add_parser("train", help="train a prior's embedded weights on the synthetic training split", formatter_class=fmt)
+    p.add_argument("name")
+    p.add_argument("--steps", type=int, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default=None, help="output folder (default: priors/weights)")
+    p.add_argument("--force", action="store_true", help="overwrite existing weights")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("compare", help="per-cell differences between two table JSONs", formatter_class=fmt)
+    p.add_argument("a")
+    p.add_argument("b")
+    p.add_argument("--tol", action="append", metavar="METRIC=VALUE", help="tolerance in the metric's unit")
+    p.set_defaults(func=_cmd_compare)
+

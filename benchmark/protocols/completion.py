@@ -1,0 +1,204 @@
+"""The completion protocol (PROTOCOL.md, table1): fit every prior to degraded point clouds, score 30 fps output.
+
+One work unit = one prior x one grid cell x one batch of sequences. All sequences of a unit are
+optimised together as one batch of latents (no Python loop over sequences or frames in the loop).
+
+Objective, the same for every prior (the table spec states it and the JSON records it)::
+
+    sum_b [ ChamferMM_b(mesh vertices at observed timestamps, observed points) + lambda_prior * prior_b ]
+
+ChamferMM is the PROTOCOL.md Chamfer (Euclidean, half of the two directed means) in millimetres,
+averaged over the sequence's observed frames; prior_b is the adapter's term. Variables: the
+adapter's latents, the body shape, and the free rigid parameters the adapter needs:
+
+- per-observed-frame root translation (priors that do not encode translation), LERP-ed;
+- per-observed-frame root orientation (priors that do not encode it), SLERP-ed;
+- a global heading (about y) and offset per sequence (decoders that normalise heading).
+
+Translation starts at the observed points' centroid minus the rest mesh's centroid; root
+orientation at identity; shape at the body's neutral shape. One Adam optimiser, cosine schedule.
+Outside the observed span, per-observed-frame variables are held at their end values; priors that
+decode the whole window (fixed-window, continuous) decode every output frame themselves.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import roma
+import torch
+
+from benchmark.interpolate import lerp_frames, slerp_frames
+from benchmark.metrics.chamfer import chamfer_loss
+from benchmark.observations import PointCloudSequence
+from priors.base import Decoded, FitBatch, PriorAdapter
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FitState:
+    """Everything optimised for one batch, and how to turn it into body parameters at any time."""
+
+    adapter: PriorAdapter
+    latents: dict
+    shape_param: torch.Tensor  # (B, S)
+    obs_t: torch.Tensor  # (B, n) observed timestamps
+    window_s: float
+    root: torch.Tensor | None = None  # (B, n, 6) free root orientation per observed frame
+    trans: torch.Tensor | None = None  # (B, n, 3) free translation per observed frame
+    heading: torch.Tensor | None = None  # (B, 1) free heading angle
+    offset: torch.Tensor | None = None  # (B, 3) free offset
+    bounded_shape: bool = True
+
+    def shape(self) -> torch.Tensor:
+        return torch.sigmoid(self.shape_param) if self.bounded_shape else self.shape_param
+
+    def parameters(self) -> list[torch.Tensor]:
+        params = [*self.latents.values(), self.shape_param]
+        params += [p for p in (self.root, self.trans, self.heading, self.offset) if p is not None]
+        return params
+
+
+def _grid(adapter: PriorAdapter, window_s: float, B: int, device) -> torch.Tensor:
+    """The decoder's own frame grid for fixed-window priors, covering the window."""
+    w = adapter.window
+    per_window = w.frames
+    n_windows = max(1, math.ceil(window_s * w.fps / per_window - 1e-9))
+    t = torch.arange(n_windows * per_window, dtype=torch.float64, device=device) / w.fps
+    return t.expand(B, -1)
+
+
+def body_parameters(state: FitState, timestamps: torch.Tensor, observed: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Local rotations (B, T, 22, 3, 3) and translation (B, T, 3) at ``timestamps`` (B, T).
+
+    ``observed`` says the timestamps are the observed ones (no interpolation of per-frame variables).
+    """
+    a = state.adapter
+    kind = a.window.kind
+    shape = state.shape() if a.shape_conditioned else None
+    if kind == "per-frame":
+        dec = a.decode(state.latents, state.obs_t, shape)
+        rot = dec.rotations if observed else slerp_frames(dec.rotations, state.obs_t, timestamps)
+        trans = None if dec.trans is None else (dec.trans if observed else lerp_frames(dec.trans, state.obs_t, timestamps))
+    elif kind == "fixed":
+        grid = _grid(a, state.window_s, timestamps.shape[0], timestamps.device)
+        dec = a.decode(state.latents, grid, shape)
+        rot = slerp_frames(dec.rotations, grid, timestamps)
+        trans = None if dec.trans is None else lerp_frames(dec.trans, grid, timestamps)
+    elif kind == "continuous":
+        dec = a.decode(state.latents, timestamps, shape)
+        rot, trans = dec.rotations, dec.trans
+    else:
+        raise ValueError(f"prior {a.name!r}: unknown window kind {kind!r}")
+    _check_decoded(a, Decoded(rot, trans), timestamps)
+
+    if state.root is not None:
+        R = roma.special_gramschmidt(state.root.unflatten(-1, (3, 2)))
+        R = R if observed else slerp_frames(R, state.obs_t, timestamps)
+        rot = torch.cat([(R @ rot[:, :, 0])[:, :, None], rot[:, :, 1:]], dim=2)
+    if state.heading is not None:
+        zero = torch.zeros_like(state.heading)
+        H = roma.rotvec_to_rotmat(torch.cat([zero, state.heading, zero], dim=-1))[:, None]  # (B, 1, 3, 3)
+        rot = torch.cat([(H[:, :, None] @ rot[:, :, :1]), rot[:, :, 1:]], dim=2)
+        if trans is not None:
+            trans = (H @ trans[..., None])[..., 0]
+    if state.trans is not None:
+        free = state.trans if observed else lerp_frames(state.trans, state.obs_t, timestamps)
+        trans = free if trans is None else trans + free
+    if state.offset is not None:
+        trans = trans + state.offset[:, None]
+    return rot, trans
+
+
+def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
+    B, T = timestamps.shape
+    if dec.rotations.shape[:3] != (B, T, 22) or dec.rotations.shape[-2:] != (3, 3):
+        raise ValueError(
+            f"prior {adapter.name!r}: decode returned rotations of shape {tuple(dec.rotations.shape)}, "
+            f"expected {(B, T, 22, 3, 3)}"
+        )
+    if dec.trans is not None and dec.trans.shape != (B, T, 3):
+        raise ValueError(f"prior {adapter.name!r}: decode returned trans {tuple(dec.trans.shape)}, expected {(B, T, 3)}")
+
+
+def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device) -> FitState:
+    B, n = batch.batch_size, batch.num_observed
+    latents = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in adapter.init_latents(batch, generator).items()}
+    bounded = body.name == "anny"
+    default = body.default_shape(B).to(device)
+    shape_param = (torch.logit(default.clamp(1e-4, 1 - 1e-4)) if bounded else default).clone().requires_grad_(True)
+    with torch.no_grad():
+        rest = body.prepare(default)
+        rest_centroid = rest.vertices.new_zeros(B, 3)
+        tpose = body.skin(rest, torch.eye(3, device=device).expand(B, 1, 22, 3, 3), torch.zeros(B, 1, 3, device=device))
+        rest_centroid = tpose.vertices[:, 0].mean(1)  # (B, 3)
+        mask = torch.arange(batch.points.shape[2], device=device) < batch.lengths[..., None]
+        cen = (batch.points * mask[..., None]).sum(2) / batch.lengths.clamp_min(1)[..., None]  # (B, n, 3)
+        trans0 = cen - rest_centroid[:, None]
+    state = FitState(adapter=adapter, latents=latents, shape_param=shape_param, obs_t=batch.timestamps,
+                     window_s=batch.window_s, bounded_shape=bounded)
+    if not adapter.encodes_translation:
+        state.trans = trans0.clone().requires_grad_(True)
+    if not adapter.encodes_root_orientation:
+        eye6 = torch.eye(3, device=device)[:, :2].reshape(6)
+        state.root = eye6.expand(B, n, 6).clone().requires_grad_(True)
+    if adapter.heading_normalised:
+        state.heading = torch.zeros(B, 1, device=device, requires_grad=True)
+    if adapter.encodes_translation:
+        state.offset = trans0.mean(1).clone().requires_grad_(True)
+    return state
+
+
+def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lambda_prior: float,
+        generator: torch.Generator, device, lr_final_fraction: float = 0.1, callback=None) -> tuple[FitState, dict]:
+    """Optimise one batch (see module docstring). Returns the state and a log of the losses."""
+    state = init_state(adapter, body, batch, generator, device)
+    opt = torch.optim.Adam(state.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=lr * lr_final_fraction)
+    B, n = batch.batch_size, batch.num_observed
+    points = batch.points.flatten(0, 1)
+    lengths = batch.lengths.flatten(0, 1)
+    history = []
+    for step in range(steps):
+        opt.zero_grad(set_to_none=True)
+        rot, trans = body_parameters(state, batch.timestamps, observed=True)
+        rest = body.prepare(state.shape())
+        verts = body.skin(rest, rot, trans).vertices  # (B, n, V, 3)
+        data = chamfer_loss(verts.flatten(0, 1), points, b_lengths=lengths).view(B, n).mean(1) * 1000.0
+        prior = adapter.prior_term(state.latents)
+        loss = (data + lambda_prior * prior).sum()
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"prior {adapter.name!r}: non-finite loss at step {step}")
+        loss.backward()
+        opt.step()
+        sched.step()
+        if step == 0 or step == steps - 1 or step % 25 == 0:
+            history.append({"step": step, "data_mm": float(data.mean()), "prior": float(prior.mean())})
+        if callback is not None:
+            callback(step, float(loss))
+    return state, {"history": history}
+
+
+@torch.no_grad()
+def decode_output(state: FitState, body, out_t: torch.Tensor):
+    rot, trans = body_parameters(state, out_t)
+    rest = body.prepare(state.shape())
+    return body.skin(rest, rot, trans), rot, trans
+
+
+def observation_batch(obs: PointCloudSequence, window_s: float, out_t: torch.Tensor, device) -> FitBatch:
+    if not bool(obs.frame_mask.all()):
+        raise ValueError("completion: every sequence of a unit must have all its observed frames (no padding)")
+    t0 = obs.timestamps[:, :1]
+    return FitBatch(points=obs.points.to(device), lengths=obs.lengths.to(device),
+                    timestamps=(obs.timestamps - t0).to(device), window_s=window_s, output_timestamps=out_t.to(device))
+
+
+def timed(fn, *args, **kwargs):
+    t = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - t

@@ -1,0 +1,118 @@
+"""Running a table: data, units, execution (resumable), derivation, writing."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections import defaultdict
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def load_motions(data: str | None, min_duration: float, body=None) -> dict:
+    """Test motions by id: the synthetic test split by default, or a folder of motion files."""
+    if data is None:
+        from benchmark.synthetic.splits import build_split
+
+        motions = build_split("test")
+        by_id = {m.source: m for m in motions}
+    else:
+        from benchmark.loaders.amass import load_amass
+        from benchmark.motion import Motion
+
+        root = Path(data.split("=", 1)[-1])
+        files = sorted(root.rglob("*.npz")) if root.is_dir() else [root]
+        if not files:
+            raise FileNotFoundError(f"--data {data}: no .npz motion files under {root}")
+        by_id = {}
+        for f in files:
+            with open(f, "rb") as fh:
+                import numpy as np
+
+                keys = set(np.load(fh, allow_pickle=False).files)
+            m = load_amass(f) if "mocap_framerate" in keys or "mocap_frame_rate" in keys else Motion.load(f)
+            by_id[str(f.relative_to(root) if root.is_dir() else f.name)] = m
+    short = [k for k, m in by_id.items() if m.duration + 1e-6 < min_duration]
+    if short:
+        log.warning("skipping %d motions shorter than the %.1f s window: %s", len(short), min_duration, short[:5])
+    return {k: m for k, m in by_id.items() if k not in short}
+
+
+def select_sequences(motions_by_id: dict, count) -> list[str]:
+    """A deterministic selection spread evenly over subjects (round robin over sorted ids)."""
+    ids = sorted(motions_by_id)
+    if count == "all" or count is None or int(count) >= len(ids):
+        return ids
+    groups = defaultdict(list)
+    for sid in ids:
+        groups[motions_by_id[sid].meta.get("subject", "")].append(sid)
+    # spread within each subject too: take evenly spaced sequences
+    per = {s: g for s, g in groups.items()}
+    chosen, k = [], 0
+    n = int(count)
+    order = sorted(per)
+    quotas = {s: n // len(order) + (1 if i < n % len(order) else 0) for i, s in enumerate(order)}
+    for s in order:
+        g, q = per[s], quotas[s]
+        step = len(g) / max(q, 1)
+        chosen += [g[int(i * step)] for i in range(min(q, len(g)))]
+        k += q
+    return sorted(chosen)
+
+
+def _sha_file(path: str | None) -> str | None:
+    if not path or not Path(path).is_file():
+        return None
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="only-missing", size="embedded",
+              weights=None, data=None, backend="local") -> dict:
+    from benchmark.cli_run import make_adapter
+    from benchmark.protocols.completion_unit import CompletionData, run_completion_unit
+    from benchmark.results import derive_table, plan_units
+    from benchmark.runner import run_units
+    from benchmark.writers import format_markdown, write_table
+
+    if spec["protocol"] != "completion":
+        raise ValueError(f"table {spec['name']!r}: protocol {spec['protocol']!r} is not implemented yet")
+    weights = weights or {}
+    unknown = set(weights) - set(priors)
+    if unknown:
+        raise ValueError(f"--weights given for priors not being run: {sorted(unknown)}")
+    motions = load_motions(data, float(spec["data"]["window_s"]), body)
+    ids = select_sequences(motions, profile["sequences"])
+    print(f"{len(ids)} sequences, {len(priors)} priors, {len(spec['grid']['points']) * len(spec['grid']['fps'])} cells, "
+          f"{profile['steps']} steps per fit")
+
+    adapters = {}
+    prior_info = {}
+    for name in priors:
+        adapters[name] = None
+        w = weights.get(name)
+        prior_info[name] = {"size": size, "weights": w, "weights_sha256": _sha_file(w)}
+
+    def get_adapter(name):
+        if adapters[name] is None:
+            adapters[name] = make_adapter(name, size=size, weights=weights.get(name), device=device)
+            info = prior_info[name]
+            info["embedded_sha256"] = getattr(adapters[name], "weights_sha256", None)
+        return adapters[name]
+
+    # resolve the embedded weights' hashes before planning, so the spec hash covers them
+    for name in priors:
+        get_adapter(name)
+
+    units = plan_units(spec, profile, priors, ids, seed, device, prior_info)
+    source = CompletionData(spec, body, motions, seed)
+
+    def execute(unit):
+        return run_completion_unit(unit, spec, profile, get_adapter(unit.prior), body, source, device)
+
+    results, failures = run_units(units, execute, out_dir, resume=resume, backend=backend)
+    meta = {"units": units, "profile": profile, "seed": seed, "device": str(device), "priors": prior_info,
+            "sequences": ids, "data": data or "synthetic:test", "body": body.name}
+    table = derive_table(spec, results, meta)
+    files = write_table(table, out_dir)
+    return {"table": table, "markdown": format_markdown(table), "files": files, "failures": failures}

@@ -1,0 +1,146 @@
+"""The prior adapter API: what a prior declares and provides to the protocols.
+
+The protocol (not the adapter) owns the optimiser loop, the data term, the free rigid parameters,
+interpolation to output timestamps and the schedule, so every prior is judged by the same rules.
+An adapter owns only its model: how latents start, how they decode to body parameters at given
+timestamps, and its prior term.
+
+Minimal example (a complete, registrable adapter)::
+
+    import torch
+    from priors.base import PriorAdapter, Decoded, WindowSpec
+
+    class MeanPose(PriorAdapter):
+        name = "mean-pose"
+        paper = "example: a one-latent prior that only scales a fixed pose"
+        window = WindowSpec(kind="per-frame")
+        encodes_translation = False
+        encodes_root_orientation = False
+
+        def init_latents(self, batch, generator):
+            return {"z": torch.randn(batch.batch_size, batch.num_observed, 1, generator=generator)}
+
+        def decode(self, latents, timestamps, shape=None):
+            B, T = timestamps.shape
+            rot = torch.eye(3).expand(B, T, 22, 3, 3).clone()
+            return Decoded(rotations=rot)
+
+        def prior_term(self, latents):
+            return latents["z"].square().sum(-1).mean(-1)
+
+and in your package's ``pyproject.toml``::
+
+    [project.entry-points."benchmark.priors"]
+    mean-pose = "my_package.my_module:MeanPose"
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from benchmark.skeleton import NUM_JOINTS
+
+
+@dataclass(frozen=True)
+class WindowSpec:
+    """How a prior covers time.
+
+    kind:
+      "per-frame"   one latent per observed frame, decoded at the observed timestamps; the protocol
+                    interpolates (SLERP/LERP) to any other timestamp (VPoser+SLERP, no-prior).
+      "fixed"       fixed windows of ``frames`` frames at ``fps``, ``duration_s = frames / fps``; a
+                    longer sequence is covered by consecutive non-overlapping windows, each with its
+                    own latents; decoded on the window's grid, the protocol interpolates between grid
+                    frames (HM-VAE, the frequency-guided prior).
+      "continuous"  decoded directly at any timestamps (sequential primitives).
+    """
+
+    kind: Literal["per-frame", "fixed", "continuous"] = "continuous"
+    frames: int | None = None
+    fps: float | None = None
+
+    @property
+    def duration_s(self) -> float | None:
+        return None if self.frames is None or self.fps is None else self.frames / self.fps
+
+
+@dataclass
+class FitBatch:
+    """What an adapter may look at when it initialises latents (observations of B sequences)."""
+
+    points: torch.Tensor  # (B, n, N, 3) observed points, padded
+    lengths: torch.Tensor  # (B, n) valid points per observed frame
+    timestamps: torch.Tensor  # (B, n) observed timestamps (s), relative to the window start
+    window_s: float  # duration of the window to reconstruct
+    output_timestamps: torch.Tensor  # (B, T_out)
+
+    @property
+    def batch_size(self) -> int:
+        return self.points.shape[0]
+
+    @property
+    def num_observed(self) -> int:
+        return self.points.shape[1]
+
+
+@dataclass
+class Decoded:
+    """Body parameters decoded by a prior at the requested timestamps.
+
+    rotations: (B, T, 22, 3, 3) local rotations in the SMPL convention; joints outside the prior's
+        subset are identity. The root (joint 0) is the prior's root orientation, or identity when the
+        prior does not encode it (the protocol then applies its free root orientation on top).
+    trans: (B, T, 3) root translation in metres, or None when the prior does not encode it.
+    """
+
+    rotations: torch.Tensor
+    trans: torch.Tensor | None = None
+    extra: dict = field(default_factory=dict)
+
+
+class PriorAdapter(torch.nn.Module):
+    """Base class of every prior adapter (see module docstring)."""
+
+    name: str = "prior"
+    paper: str = ""
+    window: WindowSpec = WindowSpec()
+    encodes_translation: bool = False
+    encodes_root_orientation: bool = False
+    heading_normalised: bool = False  # decoder outputs a canonical heading; the protocol frees one per window
+    joints: tuple[int, ...] = tuple(range(1, NUM_JOINTS))  # body joints the prior models
+    shape_conditioned: bool = False
+    has_encoder: bool = False
+    sixd_layout: str | None = None  # "interleaved" (VPoser/Xu) or "columns" (HM-VAE), if it uses 6D
+
+    def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
+        super().__init__()
+        self.size = size
+        self.weights_path = weights
+
+    # -- the three things a prior provides -------------------------------------------------
+    def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        """Initial latents for a batch: a prior sample or an encoder's output. Each tensor (B, ...)."""
+        raise NotImplementedError
+
+    def decode(self, latents: dict[str, torch.Tensor], timestamps: torch.Tensor, shape: torch.Tensor | None = None) -> Decoded:
+        """Body parameters at ``timestamps`` (B, T) seconds from the window start.
+
+        per-frame priors are only asked for their latents' own (observed) timestamps; fixed-window
+        priors are asked for their window grid; continuous priors for any timestamps.
+        """
+        raise NotImplementedError
+
+    def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B,) the prior's penalty on the latents (e.g. mean over latent codes of |z|^2)."""
+        raise NotImplementedError
+
+    # -- optional -------------------------------------------------------------------------
+    def describe(self) -> str:
+        n = sum(p.numel() for p in self.parameters())
+        return f"{self.name} ({self.size}): {n:,} parameters\n{self}"
+
+    def parameter_count(self) -> int:
+        return sum(p.numel() for p in self.parameters())
