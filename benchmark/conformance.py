@@ -148,7 +148,7 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
         def finite_and_deterministic():
             runs = []
             for _ in range(2):
-                st, info = fit(a, body, batch, steps=steps, lr=0.03, lambda_prior=0.01,
+                st, info = fit(a, body, batch, steps=steps, lr=0.03, lambda_prior=0.01, loss_vertices=1500,
                                generator=torch.Generator().manual_seed(0), device="cpu")
                 for h in info["history"]:
                     if not math.isfinite(h["data_mm"]) or not math.isfinite(h["prior"]):

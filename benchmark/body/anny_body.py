@@ -221,7 +221,8 @@ class AnnyBody(BodyModel):
         A = torch.cat([G, (t + lift)[..., None]], dim=-1)
         return RestState(vertices=verts, joints=P + lift, pre_transforms=A)
 
-    def skin(self, rest: RestState, rotations: torch.Tensor, trans: torch.Tensor) -> BodyOutput:
+    def skin(self, rest: RestState, rotations: torch.Tensor, trans: torch.Tensor,
+             vertex_indices: torch.Tensor | None = None) -> BodyOutput:
         dtype = rest.vertices.dtype
         rotations = rotations.to(dtype)
         trans = trans.to(dtype)
@@ -232,7 +233,10 @@ class AnnyBody(BodyModel):
         rot = g_rot @ A[..., :3]
         tr = (g_rot @ (A[..., 3] - rest_joints)[..., None])[..., 0] + joints
         S = torch.cat([rot, tr[..., None]], dim=-1)
-        verts = linear_blend_skinning(rest.vertices[:, None], self.weights, S)
+        rest_vertices, weights = rest.vertices, self.weights
+        if vertex_indices is not None:  # pose only a subset (e.g. the loss vertices)
+            rest_vertices, weights = rest_vertices[:, vertex_indices], weights[vertex_indices]
+        verts = linear_blend_skinning(rest_vertices[:, None], weights, S)
         return BodyOutput(vertices=verts + trans[..., None, :], joints=joints + trans[..., None, :])
 
     # ------------------------------------------------------------------ reference

@@ -63,8 +63,12 @@ class BodyModel(torch.nn.Module):
         """Shape-dependent rest state for a (B, S) shape batch; differentiable in shape."""
         raise NotImplementedError
 
-    def skin(self, rest: RestState, rotations: torch.Tensor, trans: torch.Tensor) -> BodyOutput:
-        """Pose a prepared rest state: rotations (B, T, 22, 3, 3), trans (B, T, 3)."""
+    def skin(self, rest: RestState, rotations: torch.Tensor, trans: torch.Tensor,
+             vertex_indices: torch.Tensor | None = None) -> BodyOutput:
+        """Pose a prepared rest state: rotations (B, T, 22, 3, 3), trans (B, T, 3).
+
+        ``vertex_indices`` (K,) poses only those vertices (vertices (B, T, K, 3)); joints are always all 22.
+        """
         raise NotImplementedError
 
     def forward(
@@ -99,6 +103,21 @@ class BodyModel(torch.nn.Module):
     def rest_joints(self, shape: torch.Tensor) -> torch.Tensor:
         """(B, 22, 3) T-pose joint positions at zero translation."""
         return self.prepare(shape).joints
+
+    def loss_vertex_indices(self, count: int | None) -> torch.Tensor | None:
+        """A fixed, evenly spread subset of ``count`` vertices (farthest-point sample of the T-pose), or None for all."""
+        if count is None or count >= self.num_vertices:
+            return None
+        cache = self.__dict__.setdefault("_loss_subsets", {})
+        if count not in cache:
+            from benchmark.observations import farthest_point_indices
+
+            with torch.no_grad():
+                rest = self.prepare(self.default_shape(1).to(self.faces.device))
+                eye = torch.eye(3, device=self.faces.device).expand(1, 1, NUM_JOINTS, 3, 3)
+                tpose = self.skin(rest, eye, torch.zeros(1, 1, 3, device=self.faces.device)).vertices[0, 0]
+            cache[count] = farthest_point_indices(tpose, count).to(self.faces.device)
+        return cache[count]
 
     def landmarks(self, vertices: torch.Tensor) -> torch.Tensor:
         """(..., V, 3) -> (..., 16, 3) the landmark vertices, in LANDMARK_NAMES order."""

@@ -122,11 +122,12 @@ class SMPLBody(BodyModel):
         all_joints = torch.einsum("jv,bvc->bjc", self.J_regressor, v_shaped)
         return RestState(vertices=v_shaped, joints=all_joints[:, :NUM_JOINTS], extra={"all_joints": all_joints})
 
-    def skin(self, rest: RestState, rotations: torch.Tensor, trans: torch.Tensor) -> BodyOutput:
+    def skin(self, rest: RestState, rotations: torch.Tensor, trans: torch.Tensor,
+             vertex_indices: torch.Tensor | None = None) -> BodyOutput:
         """Pose a rest state: rotations (B, T, 22, 3, 3) local, trans (B, T, 3) metres.
 
         Returns vertices (B, T, V, 3) and the 22 joints (B, T, 22, 3), both translated by ``trans``.
-        The rest state's batch may be B or 1.
+        The rest state's batch may be B or 1. ``vertex_indices`` (K,) poses only those vertices.
         """
         if rotations.dim() != 5 or rotations.shape[2:] != (NUM_JOINTS, 3, 3):
             raise ValueError(f"{self.name}: rotations must be (B, T, 22, 3, 3), got {tuple(rotations.shape)}")
@@ -135,11 +136,15 @@ class SMPLBody(BodyModel):
             raise ValueError(f"{self.name}: trans must be (B, T, 3) = {(B, T, 3)}, got {tuple(trans.shape)}")
         eye = torch.eye(3, dtype=rotations.dtype, device=rotations.device)
         pose_feature = (rotations[:, :, 1:] - eye).flatten(2)  # (B, T, 189)
-        pose_offsets = (pose_feature @ self.posedirs).view(B, T, -1, 3)
-        v_posed = rest.vertices[:, None] + pose_offsets  # (B, T, V, 3)
+        posedirs, rest_vertices, weights = self.posedirs, rest.vertices, self.weights
+        if vertex_indices is not None:
+            posedirs = posedirs.view(posedirs.shape[0], -1, 3)[:, vertex_indices].flatten(1)
+            rest_vertices, weights = rest_vertices[:, vertex_indices], weights[vertex_indices]
+        pose_offsets = (pose_feature @ posedirs).view(B, T, -1, 3)
+        v_posed = rest_vertices[:, None] + pose_offsets  # (B, T, V, 3)
         rest_joints = rest.joints[:, None]  # (B|1, 1, 22, 3)
         global_rot, joints = forward_kinematics(rotations, rest_joints, PARENTS)
         transforms = skinning_transforms(global_rot, joints, rest_joints)
-        vertices = linear_blend_skinning(v_posed, self.weights, transforms)
+        vertices = linear_blend_skinning(v_posed, weights, transforms)
         offset = trans[:, :, None, :]
         return BodyOutput(vertices=vertices + offset, joints=joints + offset)

@@ -154,8 +154,14 @@ def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Ge
 
 
 def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lambda_prior: float,
-        generator: torch.Generator, device, lr_final_fraction: float = 0.1, callback=None) -> tuple[FitState, dict]:
-    """Optimise one batch (see module docstring). Returns the state and a log of the losses."""
+        generator: torch.Generator, device, lr_final_fraction: float = 0.1, loss_vertices: int | None = None,
+        callback=None) -> tuple[FitState, dict]:
+    """Optimise one batch (see module docstring). Returns the state and a log of the losses.
+
+    ``loss_vertices``: the data term uses a fixed farthest-point subset of that many mesh vertices
+    (a profile size, for CPU speed); None uses every vertex. Evaluation always uses every vertex.
+    """
+    subset = body.loss_vertex_indices(loss_vertices)
     state = init_state(adapter, body, batch, generator, device)
     opt = torch.optim.Adam(state.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=lr * lr_final_fraction)
@@ -167,7 +173,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         opt.zero_grad(set_to_none=True)
         rot, trans = body_parameters(state, batch.timestamps, observed=True)
         rest = body.prepare(state.shape())
-        verts = body.skin(rest, rot, trans).vertices  # (B, n, V, 3)
+        verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices  # (B, n, V, 3)
         data = chamfer_loss(verts.flatten(0, 1), points, b_lengths=lengths).view(B, n).mean(1) * 1000.0
         prior = adapter.prior_term(state.latents)
         loss = (data + lambda_prior * prior).sum()
@@ -177,7 +183,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         opt.step()
         sched.step()
         if step == 0 or step == steps - 1 or step % 25 == 0:
-            history.append({"step": step, "data_mm": float(data.mean()), "prior": float(prior.mean())})
+            history.append({"step": step, "data_mm": float(data.detach().mean()), "prior": float(prior.detach().mean())})
         if callback is not None:
             callback(step, float(loss))
     return state, {"history": history}

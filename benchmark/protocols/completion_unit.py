@@ -96,6 +96,11 @@ def evaluate(body, output, data: UnitData, device) -> list[dict]:
     ]
 
 
+def _loss_vertices(profile: dict) -> int | None:
+    value = profile.get("loss_vertices", "all")
+    return None if value in (None, "all") else int(value)
+
+
 def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, data_source: CompletionData, device) -> dict:
     cell = unit.cell
     data = data_source.unit_data(unit.sequence_ids)
@@ -107,7 +112,8 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     g = torch.Generator().manual_seed(unit.seed)
     t0 = time.perf_counter()
     state, info = fit(adapter, body, batch, steps=int(profile["steps"]), lr=float(obj["lr"]),
-                      lambda_prior=float(obj["lambda_prior"]), generator=g, device=device)
+                      lambda_prior=float(obj["lambda_prior"]), generator=g, device=device,
+                      loss_vertices=_loss_vertices(profile))
     t1 = time.perf_counter()
     output, _, _ = decode_output(state, body, batch.output_timestamps)
     per_seq = evaluate(body, output, data, device)
