@@ -58,7 +58,7 @@ def _cmd_run(args) -> int:
     )
     print()
     print(result["markdown"])
-    print(f"written: {', '.join(str(p) for p in result['files'])}")
+    print(f"written: {', '.join(str(p) for p in result['files'].values())}")
     return 1 if result["failures"] else 0
 
 

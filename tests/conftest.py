@@ -17,3 +17,18 @@ def anny_body():
     from benchmark.body.anny_body import load_anny_body
 
     return load_anny_body("cpu")
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--update-goldens", action="store_true", default=False,
+        help="rewrite the committed reference tables under results/ (never in CI)",
+    )
+
+
+@pytest.fixture
+def update_goldens(request):
+    flag = request.config.getoption("--update-goldens")
+    if flag and os.environ.get("CI"):
+        raise RuntimeError("--update-goldens is refused under CI: goldens change only by an explicit local run")
+    return flag
