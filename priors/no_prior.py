@@ -1,0 +1,65 @@
+"""The no-prior baseline: free per-observed-frame body rotations, interpolated by the protocol.
+
+Latents: ``{"pose": (B, n_observed, 21, 6)}``, the local rotations of SMPL joints 1..21 in the
+"interleaved" 6D layout (row-major 3x2, the first two columns of R), initialised at the identity
+(the T-pose). Decoding is Gram-Schmidt (``benchmark.rotations.sixd_to_matrix``); the root is
+identity (the protocol owns root orientation and translation) and the prior term is zero. It is
+what VPoser+SLERP would be without VPoser: the protocol's SLERP/LERP fills the other frames.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from benchmark.rotations import matrix_to_sixd, sixd_to_matrix
+from benchmark.skeleton import NUM_JOINTS
+from priors.base import Decoded, FitBatch, PriorAdapter, WindowSpec
+
+NUM_BODY_JOINTS = NUM_JOINTS - 1
+
+
+class NoPrior(PriorAdapter):
+    """Per-observed-frame poses fitted directly; no learned model, no weights, zero prior term."""
+
+    name = "no-prior"
+    paper = "baseline: per-observed-frame pose fitted directly, SLERP/LERP"
+    window = WindowSpec(kind="per-frame")
+    encodes_translation = False
+    encodes_root_orientation = False
+    joints = tuple(range(1, NUM_JOINTS))
+    sixd_layout = "interleaved"
+    has_encoder = False
+
+    def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
+        super().__init__(size=size, weights=weights, device=device)
+        if weights is not None:
+            raise ValueError(f"no-prior has no weights; got weights={weights!r} (drop the --weights no-prior=... option)")
+        if size not in ("embedded", "paper"):
+            raise ValueError(f"no-prior: unknown size {size!r}; expected 'embedded' or 'paper' (both are the same)")
+        self._device = torch.device(device)
+
+    def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        """``{"pose": (B, n_observed, 21, 6)}`` at the identity (deterministic; ``generator`` unused)."""
+        eye6 = matrix_to_sixd(torch.eye(3, device=self._device), layout="interleaved")
+        pose = eye6.expand(batch.batch_size, batch.num_observed, NUM_BODY_JOINTS, 6).clone()
+        return {"pose": pose}
+
+    def decode(self, latents: dict[str, torch.Tensor], timestamps: torch.Tensor, shape: torch.Tensor | None = None) -> Decoded:
+        """pose (B, n, 21, 6) at its own timestamps (B, n) -> rotations (B, n, 22, 3, 3), root identity."""
+        pose = latents["pose"]
+        if pose.dim() != 4 or pose.shape[-2:] != (NUM_BODY_JOINTS, 6):
+            raise ValueError(f"no-prior: latents['pose'] must be (B, n, {NUM_BODY_JOINTS}, 6), got {tuple(pose.shape)}")
+        if tuple(timestamps.shape) != tuple(pose.shape[:2]):
+            raise ValueError(
+                f"no-prior is a per-frame prior: decode at the latents' own timestamps, shape {tuple(pose.shape[:2])}, "
+                f"got timestamps {tuple(timestamps.shape)}; the protocol interpolates to other timestamps"
+            )
+        body = sixd_to_matrix(pose, layout="interleaved")
+        B, n = pose.shape[:2]
+        root = torch.eye(3, dtype=body.dtype, device=body.device).expand(B, n, 1, 3, 3)
+        return Decoded(rotations=torch.cat([root, body], dim=2))
+
+    def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B,) zeros."""
+        pose = latents["pose"]
+        return pose.new_zeros(pose.shape[0])

@@ -1,0 +1,291 @@
+"""The shared training recipe of the embedded priors: data, skeleton, a seeded loop, outputs.
+
+Every embedded checkpoint in ``priors/weights/`` is trained by the project on its own synthetic
+training split (``benchmark.synthetic.splits.build_split("train")``), on a CPU, from a seed, and
+ships with a JSON record beside it (data, sizes, steps, seed, wall time, losses, library versions,
+date). A prior's own module owns its network and loss; this module owns what they share:
+
+- :func:`load_split_motions` / :func:`pose_frames`: motions of a split, and a seeded subsample of
+  their frames as axis-angle poses (N, 22, 3).
+- :func:`fixed_rest_skeleton`: the fixed rest skeleton (22, 3) used by forward-kinematics losses.
+- :func:`seed_everything` and :func:`train_loop`: a seeded Adam loop over random mini-batches.
+- :func:`save_checkpoint` / :func:`write_record`: atomic writes of the weights and the record.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import math
+import os
+import platform
+import subprocess
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from benchmark.skeleton import NUM_JOINTS
+
+log = logging.getLogger(__name__)
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+
+# An SMPL-like neutral rest skeleton (metres; y up, facing +z, left at +x; pelvis at the origin),
+# rounded values of the typical SMPL neutral T-pose joint layout. Used only when the embedded Anny
+# body cannot be built, as the fixed skeleton of a training loss; it is not a body model.
+SMPL_LIKE_REST_JOINTS = (
+    (0.000, 0.000, 0.000),  # pelvis
+    (0.070, -0.090, -0.005),  # left_hip
+    (-0.068, -0.090, -0.006),  # right_hip
+    (0.000, 0.110, -0.025),  # spine1
+    (0.105, -0.475, 0.010),  # left_knee
+    (-0.105, -0.475, 0.010),  # right_knee
+    (0.000, 0.245, -0.020),  # spine2
+    (0.090, -0.880, -0.045),  # left_ankle
+    (-0.090, -0.880, -0.045),  # right_ankle
+    (0.000, 0.300, 0.005),  # spine3
+    (0.115, -0.940, 0.075),  # left_foot
+    (-0.115, -0.940, 0.075),  # right_foot
+    (0.000, 0.510, -0.035),  # neck
+    (0.075, 0.420, -0.020),  # left_collar
+    (-0.075, 0.420, -0.020),  # right_collar
+    (0.000, 0.580, 0.015),  # head
+    (0.170, 0.450, -0.030),  # left_shoulder
+    (-0.170, 0.450, -0.030),  # right_shoulder
+    (0.425, 0.440, -0.050),  # left_elbow
+    (-0.425, 0.440, -0.050),  # right_elbow
+    (0.680, 0.445, -0.050),  # left_wrist
+    (-0.680, 0.445, -0.050),  # right_wrist
+)
+
+
+# -- data ------------------------------------------------------------------------------------
+def load_split_motions(split: str) -> list:
+    """The synthetic split's motions (``benchmark.synthetic.splits.build_split``), cached on disk by it.
+
+    Raises a clear error when the synthetic generator is not available.
+    """
+    try:
+        from benchmark.synthetic.splits import build_split
+    except ImportError as exc:
+        raise RuntimeError(
+            f"cannot load the synthetic {split!r} split: benchmark/synthetic/splits.py "
+            f"(build_split) is not importable ({exc}). Train on explicit poses instead "
+            "(pass poses=... to the prior's training function)."
+        ) from exc
+    motions = build_split(split)
+    if not motions:
+        raise RuntimeError(f"benchmark.synthetic.splits.build_split({split!r}) returned no motions")
+    return list(motions)
+
+
+def pose_frames(motions: list, every: int = 1, max_frames: int | None = None, seed: int = 0) -> torch.Tensor:
+    """(N, 22, 3) axis-angle poses (radians) of the frames of ``motions``.
+
+    Takes every ``every``-th frame of each motion (``motion.poses`` (T, 22, 3)), concatenates them,
+    and if more than ``max_frames`` remain keeps a random subset of that size (drawn with ``seed``,
+    kept in the original order). Float32, CPU.
+    """
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    chunks = []
+    for i, m in enumerate(motions):
+        poses = torch.as_tensor(m.poses, dtype=torch.float32)
+        if poses.dim() != 3 or poses.shape[1:] != (NUM_JOINTS, 3):
+            raise ValueError(f"motion {i} ({getattr(m, 'name', '?')}): poses must be (T, {NUM_JOINTS}, 3), got {tuple(poses.shape)}")
+        chunks.append(poses[::every])
+    if not chunks:
+        raise ValueError("no motions given")
+    frames = torch.cat(chunks)
+    if max_frames is not None and frames.shape[0] > max_frames:
+        g = torch.Generator().manual_seed(seed)
+        keep = torch.randperm(frames.shape[0], generator=g)[:max_frames].sort().values
+        frames = frames[keep]
+    return frames
+
+
+def fixed_rest_skeleton() -> tuple[torch.Tensor, str]:
+    """(22, 3) rest joint positions (metres, pelvis at the origin) and where they come from.
+
+    The default embedded Anny body's T-pose joints at its default shape when the body can be built,
+    else :data:`SMPL_LIKE_REST_JOINTS`. The source string goes into the training record.
+    """
+    try:
+        from benchmark.body.anny_body import load_anny_body
+
+        body = load_anny_body("cpu")
+        with torch.no_grad():
+            joints = body.rest_joints(body.default_shape(1))[0].float()
+        return (joints - joints[0]).cpu(), "anny default body rest_joints (default shape), pelvis-centred"
+    except Exception as exc:  # the fallback is documented and recorded
+        log.warning("embedded Anny body unavailable (%s: %s); using the SMPL-like fallback skeleton", type(exc).__name__, exc)
+        return torch.tensor(SMPL_LIKE_REST_JOINTS, dtype=torch.float32), (
+            f"SMPL-like fallback skeleton (priors/training.py SMPL_LIKE_REST_JOINTS); Anny body unavailable: {type(exc).__name__}"
+        )
+
+
+# -- the loop --------------------------------------------------------------------------------
+def seed_everything(seed: int) -> torch.Generator:
+    """Seed torch's global RNG (initialisation, dropout) and return a CPU generator for batching."""
+    torch.manual_seed(seed)
+    return torch.Generator().manual_seed(seed)
+
+
+@dataclass
+class TrainResult:
+    steps: int
+    wall_s: float
+    final_train: dict  # mean of each loss part over the last ``log_every`` steps
+    final_val: dict | None
+    history: list = field(default_factory=list)  # [{"step", parts...}] every log_every steps
+
+
+def train_loop(
+    model: torch.nn.Module,
+    loss_fn: Callable[[torch.nn.Module, torch.Tensor], dict],
+    data: torch.Tensor,
+    *,
+    steps: int,
+    batch_size: int,
+    seed: int,
+    lr: float = 1e-3,
+    weight_decay: float = 0.0,
+    final_lr_ratio: float = 0.1,
+    log_every: int = 100,
+    val_data: torch.Tensor | None = None,
+    val_batch: int = 4096,
+) -> TrainResult:
+    """Adam over shuffled mini-batches of ``data`` (first dim = samples), seeded.
+
+    ``loss_fn(model, batch)`` returns a dict of scalar tensors with a ``"loss"`` entry to minimise
+    (the other entries are logged). The learning rate follows a cosine from ``lr`` down to
+    ``lr * final_lr_ratio``. Batches are epoch-wise permutations drawn from a generator seeded with
+    ``seed``; ``torch.manual_seed(seed)`` is set too (call it before building the model for a
+    reproducible initialisation). The validation loss (``loss_fn`` in eval mode, no gradient, mean
+    over chunks of ``val_batch``) is computed once at the end.
+    """
+    if steps < 1 or batch_size < 1:
+        raise ValueError(f"steps and batch_size must be >= 1, got {steps}, {batch_size}")
+    n = data.shape[0]
+    if n < 2:
+        raise ValueError(f"need at least 2 training samples, got {n}")
+    batch_size = min(batch_size, n)
+    gen = seed_everything(seed)
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: final_lr_ratio + (1 - final_lr_ratio) * 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps))
+    )
+    model.train()
+    perm, pos = torch.randperm(n, generator=gen), 0
+    history, window = [], []
+    t0 = time.perf_counter()
+    for step in range(1, steps + 1):
+        if pos + batch_size > n:
+            perm, pos = torch.randperm(n, generator=gen), 0
+        batch = data[perm[pos : pos + batch_size]]
+        pos += batch_size
+        parts = loss_fn(model, batch)
+        loss = parts["loss"]
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite training loss at step {step}: { {k: float(v) for k, v in parts.items()} }")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        window.append({k: float(v.detach()) for k, v in parts.items()})
+        if step % log_every == 0 or step == steps:
+            mean = {k: sum(w[k] for w in window) / len(window) for k in window[0]}
+            history.append({"step": step, **mean})
+            log.info("step %d/%d %s", step, steps, " ".join(f"{k}={v:.4g}" for k, v in mean.items()))
+            final_train, window = mean, []
+    wall = time.perf_counter() - t0
+    final_val = evaluate(model, loss_fn, val_data, val_batch) if val_data is not None else None
+    return TrainResult(steps=steps, wall_s=wall, final_train=final_train, final_val=final_val, history=history)
+
+
+@torch.no_grad()
+def evaluate(model: torch.nn.Module, loss_fn: Callable, data: torch.Tensor, chunk: int = 4096) -> dict:
+    """Sample-weighted mean of each ``loss_fn`` part over ``data``, model in eval mode (then restored)."""
+    was_training = model.training
+    model.eval()
+    totals: dict[str, float] = {}
+    for i in range(0, data.shape[0], chunk):
+        batch = data[i : i + chunk]
+        for k, v in loss_fn(model, batch).items():
+            totals[k] = totals.get(k, 0.0) + float(v) * batch.shape[0]
+    model.train(was_training)
+    return {k: v / data.shape[0] for k, v in totals.items()}
+
+
+# -- outputs ---------------------------------------------------------------------------------
+def _atomic_write(path: Path, write: Callable[[str], None]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def save_checkpoint(path: str | Path, state_dict: dict, config: dict) -> Path:
+    """Write ``{"state_dict": ..., "config": ...}`` (CPU tensors, torch.save) atomically."""
+    path = Path(path)
+    payload = {"state_dict": {k: v.detach().cpu().clone() for k, v in state_dict.items()}, "config": dict(config)}
+    _atomic_write(path, lambda tmp: torch.save(payload, tmp))
+    return path
+
+
+def environment_record() -> dict:
+    """Library versions, host, date and git revision, for a training record."""
+    try:
+        rev = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True, text=True, timeout=10
+        ).stdout.strip() or None
+    except Exception:
+        rev = None
+    return {
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "torch_threads": torch.get_num_threads(),
+        "git_revision": rev,
+        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+def write_record(path: str | Path, record: dict) -> Path:
+    """Write a JSON training record atomically (sorted keys, indented)."""
+    path = Path(path)
+    text = json.dumps(record, indent=2, sort_keys=True) + "\n"
+
+    def write(tmp: str) -> None:
+        with open(tmp, "w") as f:
+            f.write(text)
+
+    _atomic_write(path, write)
+    return path
+
+
+__all__ = [
+    "WEIGHTS_DIR",
+    "SMPL_LIKE_REST_JOINTS",
+    "load_split_motions",
+    "pose_frames",
+    "fixed_rest_skeleton",
+    "seed_everything",
+    "TrainResult",
+    "train_loop",
+    "evaluate",
+    "save_checkpoint",
+    "environment_record",
+    "write_record",
+]
