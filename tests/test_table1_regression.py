@@ -42,7 +42,7 @@ def test_smoke_table_is_complete(smoke_table):
             for metric in ("chamfer_mm", "chamfer_surface_mm", "mpjpe_mm"):
                 assert 0 < cell[metric] < 1000
             assert cell["chamfer_surface_mm"] <= cell["chamfer_mm"] + 1e-6
-            assert cell["frames"] == 2 * 120
+            assert cell["frames"] == get_profile("smoke")["sequences"] * 120
 
 
 def test_resume_reuses_every_unit(smoke_table, anny_body):

@@ -78,21 +78,30 @@ class CompletionData:
 def evaluate(body, output, data: UnitData, device, surface_points: int | None = None) -> list[dict]:
     """Per-sequence metric sums (metres, summed over output frames).
 
-    ``surface_points``: the point-to-surface column uses the first that many points of each
-    ground-truth scan (they are i.i.d. uniform samples, so this is an unbiased subsample); None: all.
+    Both Chamfer columns share the direction output vertices -> nearest ground-truth scan point
+    (over the full scan). The other direction is scan point -> nearest output vertex (headline
+    column) or -> nearest point on the output triangles (surface column). ``surface_points``: the
+    scan -> triangles direction uses the first that many points of each scan (i.i.d. uniform
+    samples, so an unbiased subsample of the same mean); None: all.
     """
-    from benchmark.metrics.chamfer import chamfer_distance
-    from benchmark.metrics.surface import chamfer_surface_distance
+    from benchmark.metrics.chamfer import nearest_neighbors
+    from benchmark.metrics.surface import points_to_surface_distance
 
-    verts = output.vertices.to("cpu")
+    verts = output.vertices.to("cpu", torch.float32)
     B, T = verts.shape[:2]
-    gt_points = data.gt_points.to(verts)
-    ch = chamfer_distance(verts.flatten(0, 1), gt_points.flatten(0, 1)).view(B, T)
-    faces = body.faces.to("cpu")
-    surf = torch.stack([
-        chamfer_surface_distance(gt_points[b, :, :surface_points], verts[b], faces) for b in range(B)
-    ]).view(B, T)
+    gt = data.gt_points.to(verts)
+    v_flat, g_flat = verts.flatten(0, 1), gt.flatten(0, 1)
+    d_vg, _ = nearest_neighbors(v_flat, g_flat)  # (B*T, V)
+    d_gv, _ = nearest_neighbors(g_flat, v_flat)  # (B*T, N)
+    vert_to_scan = d_vg.mean(1)
+    chamfer = 0.5 * (vert_to_scan + d_gv.mean(1))
+    faces = body.faces.cpu().numpy()
+    sub = g_flat[:, :surface_points].double().numpy()
+    vv = v_flat.double().numpy()
+    scan_to_surface = torch.tensor([points_to_surface_distance(sub[i], vv[i], faces).mean() for i in range(B * T)])
+    surface = 0.5 * (vert_to_scan.double() + scan_to_surface)
     err = (output.joints.to("cpu") - data.gt_joints.to(verts)).norm(dim=-1).mean(-1)  # (B, T)
+    ch, surf = chamfer.view(B, T), surface.view(B, T)
     return [
         {"frames": T, "sums": {"chamfer_m": float(ch[b].sum()), "chamfer_surface_m": float(surf[b].sum()),
                                "mpjpe_m": float(err[b].sum())}}
