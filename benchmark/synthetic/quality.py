@@ -61,6 +61,11 @@ def foot_metrics(motions: Sequence[Motion], body=None, contact_height: float = 0
     if not motions:
         raise ValueError("foot_metrics: no motions given")
     use_mesh = body is not None and isinstance(body, torch.nn.Module)
+    if use_mesh and not hasattr(body, "weights"):
+        raise TypeError(
+            f"foot_metrics: body {type(body).__name__} has no 'weights' (V, 22) skinning weights to find its "
+            "feet; pass a skeleton source (rest_skeleton(shape)) or None (the motions' recorded skeletons)"
+        )
     all_speeds, worst, frames = [], 0.0, 0
     for m in motions:
         t = m.timestamps.to(_DTYPE)

@@ -24,11 +24,13 @@ import logging
 import os
 import tempfile
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import torch
 
 from benchmark.motion import Motion
 from benchmark.synthetic.generator import GENERATOR_VERSION, SequencePlan, SyntheticSequence
@@ -93,6 +95,19 @@ def cache_dir(name: str, seed: int | None = None, root: str | os.PathLike | None
     return base / (name if seed is None or int(seed) == spec.seed else f"{name}-seed{int(seed)}")
 
 
+@contextmanager
+def _single_threaded():
+    """Generation runs on many small tensors, where torch's intra-op threads bring nothing and,
+    on a busy machine, cost a lot (measured 50x slower with 2 threads on 2 loaded cores); the
+    previous thread count is restored on exit."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
+
+
 def generate_split(name: str, body=None, seed: int | None = None, limit: int | None = None) -> list[Motion]:
     """Generate a split's motions in memory (no cache). ``body``: see :func:`build_split`;
     ``limit``: only the first ``limit`` sequences (for quick looks and tests)."""
@@ -103,12 +118,13 @@ def generate_split(name: str, body=None, seed: int | None = None, limit: int | N
         plans = plans[:limit]
     source = skeleton_source(body)
     out = []
-    for i, plan in enumerate(plans):
-        skeleton = source.rest_skeleton(plan.subject.phenotype)
-        seq = SyntheticSequence(plan, skeleton)
-        out.append(seq.to_motion(spec.fps, source=f"synthetic:{name}:{i:04d}",
-                                 meta={"split": name, "index": i, "split_seed": seed,
-                                       "subject_info": plan.subject.to_meta()}))
+    with _single_threaded():
+        for i, plan in enumerate(plans):
+            skeleton = source.rest_skeleton(plan.subject.phenotype)
+            seq = SyntheticSequence(plan, skeleton)
+            out.append(seq.to_motion(spec.fps, source=f"synthetic:{name}:{i:04d}",
+                                     meta={"split": name, "index": i, "split_seed": seed,
+                                           "subject_info": plan.subject.to_meta()}))
     return out
 
 
