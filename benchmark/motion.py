@@ -228,7 +228,8 @@ class Motion:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as f:
-                np.savez(f, **arrays)
+                _write_npz_deterministic(f, arrays)
+            os.chmod(tmp, 0o644)
             os.replace(tmp, path)
         except BaseException:
             if os.path.exists(tmp):
@@ -299,6 +300,21 @@ class Motion:
                     f"(1 / median dt = {motion.fps:.6g}); fix or drop one of them"
                 )
         return motion
+
+
+def _write_npz_deterministic(fileobj, arrays: dict) -> None:
+    """Like ``np.savez`` (readable by ``np.load``), but with fixed zip timestamps and member order,
+    so the same content always gives the same bytes."""
+    import io
+    import zipfile
+
+    with zipfile.ZipFile(fileobj, mode="w", compression=zipfile.ZIP_STORED) as zf:
+        for name in sorted(arrays):
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asanyarray(arrays[name]), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, buf.getvalue())
 
 
 def _json_default(x):
