@@ -373,6 +373,16 @@ class VPoserSlerp(PriorAdapter):
         root = torch.eye(3, dtype=body.dtype, device=body.device).expand(B, n, 1, 3, 3)
         return Decoded(rotations=torch.cat([root, body], dim=2))
 
+    @classmethod
+    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
+        """``python -m benchmark train vposer-slerp``: retrain the embedded weights (see train_vposer)."""
+        out = Path(out_dir) if out_dir is not None else DEFAULT_WEIGHTS.parent
+        target = out / DEFAULT_WEIGHTS.name
+        if target.exists() and not overwrite:
+            raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
+        _, record = train_vposer(out, steps=steps or 6000, seed=seed)
+        return record
+
     def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B,) mean over the sequence's latent codes of |z|^2 (sum over the L dims)."""
         return latents["z"].square().sum(-1).mean(-1)

@@ -150,7 +150,50 @@ def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Ge
         state.heading = torch.zeros(B, 1, device=device, requires_grad=True)
     if adapter.encodes_translation:
         state.offset = trans0.mean(1).clone().requires_grad_(True)
+    _initial_heading(state, body, batch)
     return state
+
+
+HEADING_CANDIDATES = 8
+
+
+@torch.no_grad()
+def _initial_heading(state: FitState, body, batch: FitBatch) -> None:
+    """Coarse search of the initial facing direction, the same for every prior.
+
+    The body is tried at HEADING_CANDIDATES yaw angles (about y, applied to the free root
+    orientation or the free heading) and each sequence keeps the yaw with the lowest initial data
+    term. Without it, every prior starts facing +z and a subject walking the other way is often
+    fitted backwards, whatever the prior.
+    """
+    if state.root is None and state.heading is None:
+        return
+    B, n = batch.batch_size, batch.num_observed
+    subset = body.loss_vertex_indices(1000)
+    rest = body.prepare(state.shape())
+    best = None
+    base_root = None if state.root is None else state.root.detach().clone()
+    base_heading = None if state.heading is None else state.heading.detach().clone()
+    scores = []
+    for k in range(HEADING_CANDIDATES):
+        yaw = 2 * math.pi * k / HEADING_CANDIDATES
+        _set_yaw(state, base_root, base_heading, torch.full((B,), yaw, device=batch.points.device))
+        rot, trans = body_parameters(state, batch.timestamps, observed=True)
+        verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices
+        d = chamfer_loss(verts.flatten(0, 1), batch.points.flatten(0, 1), b_lengths=batch.lengths.flatten(0, 1))
+        scores.append(d.view(B, n).mean(1))
+    best = torch.stack(scores, 1).argmin(1).to(batch.points.dtype)  # (B,)
+    _set_yaw(state, base_root, base_heading, 2 * math.pi * best / HEADING_CANDIDATES)
+
+
+def _set_yaw(state: FitState, base_root, base_heading, yaw: torch.Tensor) -> None:
+    if state.heading is not None:
+        state.heading.copy_(base_heading + yaw[:, None])
+        return
+    zero = torch.zeros_like(yaw)
+    Y = roma.rotvec_to_rotmat(torch.stack([zero, yaw, zero], -1))[:, None]  # (B, 1, 3, 3)
+    R = roma.special_gramschmidt(base_root.unflatten(-1, (3, 2)))
+    state.root.copy_((Y @ R)[..., :2].flatten(-2))
 
 
 def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lambda_prior: float,
