@@ -380,7 +380,7 @@ class VPoserSlerp(PriorAdapter):
         target = out / DEFAULT_WEIGHTS.name
         if target.exists() and not overwrite:
             raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
-        _, record = train_vposer(out, steps=steps or 6000, seed=seed)
+        _, record = train_vposer(out, seed=seed, **({"steps": int(steps)} if steps else {}))
         return record
 
     def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -423,7 +423,7 @@ def vposer_loss(model: VPoser, pose_body: torch.Tensor, rest_joints: torch.Tenso
 
 def train_vposer(
     out_dir: str | Path | None = None,
-    steps: int = 6000,
+    steps: int = 15000,
     seed: int = 0,
     *,
     hidden: int = EMBEDDED_CONFIG["hidden"],
@@ -498,6 +498,7 @@ def train_vposer(
         "optimiser": {"name": "Adam", "lr": lr, "weight_decay": 1e-5, "schedule": "cosine to 0.1*lr", "batch_size": batch_size},
         "steps": steps,
         "seed": seed,
+        "torch_threads_training": 1,
         "train_wall_s": round(result.wall_s, 2),
         "final_train": result.final_train,
         "final_val": result.final_val,
@@ -514,12 +515,12 @@ def train_vposer(
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m priors.vposer --out priors/weights --steps 6000 --seed 0``: train the embedded weights."""
+    """``python -m priors.vposer --out priors/weights --steps 15000 --seed 0``: train the embedded weights."""
     import argparse
 
     ap = argparse.ArgumentParser(description="Train the embedded VPoser on the synthetic training split.")
     ap.add_argument("--out", default=str(DEFAULT_WEIGHTS.parent), help="output folder (default: %(default)s)")
-    ap.add_argument("--steps", type=int, default=6000)
+    ap.add_argument("--steps", type=int, default=15000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--hidden", type=int, default=EMBEDDED_CONFIG["hidden"])
     ap.add_argument("--latent", type=int, default=EMBEDDED_CONFIG["latent"])

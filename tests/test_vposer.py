@@ -290,13 +290,17 @@ def test_embedded_weights_load_decode_and_reconstruct():
     a = VPoserSlerp()  # size "embedded", priors/weights/vposer.pt
     assert a.checkpoint.format == "project" and a.checkpoint.ignored == []
     assert a.parameter_count() < 2_600_000  # < 10 MB of float32
-    z = torch.zeros(1, 1, a.latent_dim)
-    R = a.decode({"z": z}, torch.zeros(1, 1)).rotations
-    assert R.shape == (1, 1, 22, 3, 3) and torch.isfinite(R).all()
-    # the autoencoder reconstructs a pose near its training distribution (the mean pose) reasonably
-    rt = a.decode({"z": a.encode_poses(R[:, :, 1:])}, torch.zeros(1, 1)).rotations
-    err = roma.rotmat_geodesic_distance(rt, R).max()
-    assert float(err) < math.radians(20)
+    z = torch.randn(1, 64, a.latent_dim, generator=torch.Generator().manual_seed(0))
+    R = a.decode({"z": z}, torch.zeros(1, 64)).rotations
+    assert R.shape == (1, 64, 22, 3, 3) and torch.isfinite(R).all()
+    # prior samples decode to distinct poses (not a collapsed decoder) ...
+    spread = roma.rotmat_geodesic_distance(R[0, :32, 1:], R[0, 32:, 1:]).mean()
+    assert float(spread) > math.radians(5)
+    # ... that the encoder maps back near their codes: encode -> decode reconstructs them
+    # (measured 1.4-1.7 degrees mean over joints with the shipped weights)
+    rt = a.decode({"z": a.encode_poses(R[:, :, 1:])}, torch.zeros(1, 64)).rotations
+    err = roma.rotmat_geodesic_distance(rt[:, :, 1:], R[:, :, 1:]).mean()
+    assert float(err) < math.radians(5)
 
 
 # -- training --------------------------------------------------------------------------------
