@@ -43,6 +43,9 @@ def test_smoke_table_is_complete(smoke_table):
                 assert 0 < cell[metric] < 1000
             assert cell["chamfer_surface_mm"] <= cell["chamfer_mm"] + 1e-6
             assert cell["frames"] == get_profile("smoke")["sequences"] * 120
+    # every prior saw the same degraded observation in a cell
+    for a, b in zip(table["rows"][0]["cells"], table["rows"][1]["cells"]):
+        assert a["fingerprint"] == b["fingerprint"]
 
 
 def test_resume_reuses_every_unit(smoke_table, anny_body):
@@ -70,3 +73,24 @@ def test_matches_committed_golden(smoke_table, update_goldens):
         for g, n in zip(g_row["cells"], n_row["cells"]):
             assert g["fingerprint"] == n["fingerprint"], "the degraded observations changed: regenerate goldens knowingly"
     shutil.rmtree(out, ignore_errors=True)
+
+
+def test_committed_quick_table_is_complete_and_consistent():
+    """The default-profile reference table: every cell filled, provenance recorded, Markdown beside it."""
+    path = ROOT / "results" / "table1.quick.json"
+    table = json.loads(path.read_text())
+    assert table["table"] == "table1" and table["profile"] == "quick"
+    assert (ROOT / "results" / "table1.quick.md").exists()
+    for key in ("protocol_version", "seed", "device", "provenance", "rows"):
+        assert key in table
+    assert {r["prior"] for r in table["rows"]} >= {"no-prior", "vposer-slerp"}
+    for row in table["rows"]:
+        assert len(row["cells"]) == 6
+        for cell in row["cells"]:
+            assert cell.get("na_reason") is None and cell["chamfer_mm"] > 0 and cell["fingerprint"]
+    # the same cell saw the same observation for every prior
+    by_cell = {}
+    for row in table["rows"]:
+        for cell in row["cells"]:
+            by_cell.setdefault((cell["points"], cell["fps"]), set()).add(cell["fingerprint"])
+    assert all(len(v) == 1 for v in by_cell.values())

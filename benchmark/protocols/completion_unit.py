@@ -148,7 +148,10 @@ def _loss_vertices(profile: dict) -> int | None:
 def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, data_source: CompletionData, device) -> dict:
     cell = unit.cell
     data = data_source.unit_data(unit.sequence_ids)
-    obs = degrade(data.scans, int(cell["points"]), float(cell["fps"]), seed=stable_seed("degrade", unit.seed),
+    # The degradation depends on the table seed, the cell and the sequences, never on the prior:
+    # every prior sees the same observation in a cell (same fingerprint).
+    degrade_seed = stable_seed("degrade", data_source.seed, cell["points"], cell["fps"], *unit.sequence_ids)
+    obs = degrade(data.scans, int(cell["points"]), float(cell["fps"]), seed=degrade_seed,
                   capture_fps=float(table_spec["data"]["capture_fps"]))
     fp = fingerprint(obs)
     batch = observation_batch(obs, float(table_spec["data"]["window_s"]), data.out_t, device)
