@@ -108,7 +108,7 @@ def add_run_commands(sub) -> None:
     p.add_argument("--weights", action="append", metavar="PRIOR=PATH", help="official checkpoint for a prior")
     p.add_argument("--body", default="anny", help="body model: anny | smpl | smplh | smplx[=PATH[:gender]]")
     p.add_argument("--data", default=None, help="motion data: default synthetic test split; or a folder of harness/AMASS .npz files")
-    p.add_argument("--backend", choices=["local", "ray"], default="local")
+    p.add_argument("--backend", choices=["local"], default="local", help="execution backend (a Ray backend is planned)")
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("describe", help="architecture summary and parameter count of a prior", formatter_class=fmt)

@@ -33,10 +33,31 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
                 keys = set(np.load(fh, allow_pickle=False).files)
             m = load_amass(f) if "mocap_framerate" in keys or "mocap_frame_rate" in keys else Motion.load(f)
             by_id[str(f.relative_to(root) if root.is_dir() else f.name)] = m
+    if body is not None:
+        by_id = {k: _shape_for_body(m, body) for k, m in by_id.items()}
     short = [k for k, m in by_id.items() if m.duration + 1e-6 < min_duration]
     if short:
         log.warning("skipping %d motions shorter than the %.1f s window: %s", len(short), min_duration, short[:5])
     return {k: m for k, m in by_id.items() if k not in short}
+
+
+def _shape_for_body(motion, body):
+    """Keep a motion's shape when it belongs to this body family; SMPL betas are truncated or
+    zero-padded to the body's count; a shape of another body is replaced by the neutral shape."""
+    import dataclasses
+
+    import torch
+
+    if motion.shape is None:
+        return motion
+    smpl_family = {"smpl", "smplh", "smplx"}
+    src = (motion.body or "").lower()
+    if src == body.name or (src in smpl_family and body.name in smpl_family):
+        s = motion.shape.reshape(-1)[: body.shape_dim]
+        s = torch.cat([s, s.new_zeros(body.shape_dim - s.numel())])
+        return dataclasses.replace(motion, shape=s, body=body.name)
+    log.info("motion %s: its %s shape does not apply to body %r; using the neutral shape", motion.source, src, body.name)
+    return dataclasses.replace(motion, shape=None, body=None)
 
 
 def select_sequences(motions_by_id: dict, count) -> list[str]:
