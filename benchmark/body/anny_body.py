@@ -30,11 +30,11 @@ from __future__ import annotations
 import logging
 import warnings
 
-import roma
 import torch
 
 from benchmark.body.base import BodyModel, BodyOutput, RestState
 from benchmark.body.lbs import forward_kinematics, linear_blend_skinning
+from benchmark.rotations import rotation_between
 from benchmark.skeleton import JOINT_INDEX, JOINT_NAMES, NUM_JOINTS, PARENTS
 
 log = logging.getLogger(__name__)
@@ -73,18 +73,6 @@ TPOSE_TARGETS = {
 
 # Anny's frame (z up, facing -y, left at +x) -> world (y up, facing +z, left at +x).
 ANNY_TO_WORLD = ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
-
-
-def _rotation_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) the minimal rotation taking unit direction a onto unit direction b."""
-    a = torch.nn.functional.normalize(a, dim=-1)
-    b = torch.nn.functional.normalize(b, dim=-1)
-    cross = torch.cross(a, b, dim=-1)
-    sin = cross.norm(dim=-1, keepdim=True)
-    cos = (a * b).sum(-1, keepdim=True)
-    angle = torch.atan2(sin, cos)
-    axis = cross / sin.clamp_min(1e-12)
-    return roma.rotvec_to_rotmat(axis * angle)
 
 
 def _make_anny(rig: str = "cmu_mb"):
@@ -207,7 +195,7 @@ class AnnyBody(BodyModel):
             if keep_pitch:  # point the segment straight forward, keeping its rise/fall
                 horiz = current[:, [0, 2]].norm(dim=-1, keepdim=True)
                 target = torch.cat([torch.zeros_like(horiz), current[:, 1:2], horiz], dim=-1)
-            G[j] = _rotation_between(current, target) @ G[p]
+            G[j] = rotation_between(current, target) @ G[p]
         G = torch.stack(G, dim=1)  # (B, 22, 3, 3)
         P = torch.stack(P, dim=1)  # (B, 22, 3)
         t = P - (G @ jh[..., None])[..., 0]
