@@ -209,18 +209,20 @@ class AnnyBody(BodyModel):
         A = torch.cat([G, (t + lift)[..., None]], dim=-1)
         return RestState(vertices=verts, joints=P + lift, pre_transforms=A)
 
-    def skin(self, rest: RestState, rotations: torch.Tensor, trans: torch.Tensor,
-             vertex_indices: torch.Tensor | None = None) -> BodyOutput:
-        dtype = rest.vertices.dtype
-        rotations = rotations.to(dtype)
-        trans = trans.to(dtype)
+    def _joint_transforms(self, rest: RestState, rotations: torch.Tensor):
+        """Per-joint skinning transforms S_j = M_j A_j (B, T, 22, 3, 4) acting on Anny's rest
+        vertices, with M_j = [R_j | p_j - R_j J_j] from FK; and the posed joints (B, T, 22, 3)."""
         rest_joints = rest.joints[:, None]  # (B, 1, 22, 3)
-        g_rot, joints = forward_kinematics(rotations, rest_joints)  # (B, T, 22, 3, 3), (B, T, 22, 3)
+        g_rot, joints = forward_kinematics(rotations.to(rest.vertices.dtype), rest_joints)
         A = rest.pre_transforms[:, None]  # (B, 1, 22, 3, 4)
-        # S_j = M_j A_j with M_j = [R_j | p_j - R_j J_j]
         rot = g_rot @ A[..., :3]
         tr = (g_rot @ (A[..., 3] - rest_joints)[..., None])[..., 0] + joints
-        S = torch.cat([rot, tr[..., None]], dim=-1)
+        return torch.cat([rot, tr[..., None]], dim=-1), joints
+
+    def skin(self, rest: RestState, rotations: torch.Tensor, trans: torch.Tensor,
+             vertex_indices: torch.Tensor | None = None) -> BodyOutput:
+        trans = trans.to(rest.vertices.dtype)
+        S, joints = self._joint_transforms(rest, rotations)
         rest_vertices, weights = rest.vertices, self.weights
         if vertex_indices is not None:  # pose only a subset (e.g. the loss vertices)
             rest_vertices, weights = rest_vertices[:, vertex_indices], weights[vertex_indices]
@@ -235,12 +237,9 @@ class AnnyBody(BodyModel):
         body's vertices (rotated back to Anny's frame); the tests use it as the reference.
         """
         B, T = rotations.shape[:2]
-        rest_joints = rest.joints[:, None]
-        g_rot, joints = forward_kinematics(rotations.to(rest.vertices.dtype), rest_joints)
-        A = rest.pre_transforms[:, None]
-        rot = g_rot @ A[..., :3]
-        tr = (g_rot @ (A[..., 3] - rest_joints)[..., None])[..., 0] + joints + trans[..., None, :]
-        S = torch.cat([rot, tr[..., None]], dim=-1)  # world-frame skinning transform per joint
+        S, _ = self._joint_transforms(rest, rotations)
+        S = S.clone()
+        S[..., 3] = S[..., 3] + trans.to(S)[..., None, :]  # world-frame skinning transform per joint
         S_bone = S[:, :, self.bone_to_joint]  # (B, T, K, 3, 4)
         C = self.anny_to_world
         # Anny frame: S_anny = C^T S C (rotation C^T R C, translation C^T t).

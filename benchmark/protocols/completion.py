@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from dataclasses import dataclass
 
 import roma
@@ -133,7 +132,6 @@ def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Ge
     shape_param = (torch.logit(default.clamp(1e-4, 1 - 1e-4)) if bounded else default).clone().requires_grad_(True)
     with torch.no_grad():
         rest = body.prepare(default)
-        rest_centroid = rest.vertices.new_zeros(B, 3)
         tpose = body.skin(rest, torch.eye(3, device=device).expand(B, 1, 22, 3, 3), torch.zeros(B, 1, 3, device=device))
         rest_centroid = tpose.vertices[:, 0].mean(1)  # (B, 3)
         mask = torch.arange(batch.points.shape[2], device=device) < batch.lengths[..., None]
@@ -171,7 +169,6 @@ def _initial_heading(state: FitState, body, batch: FitBatch) -> None:
     B, n = batch.batch_size, batch.num_observed
     subset = body.loss_vertex_indices(1000)
     rest = body.prepare(state.shape())
-    best = None
     base_root = None if state.root is None else state.root.detach().clone()
     base_heading = None if state.heading is None else state.heading.detach().clone()
     scores = []
@@ -245,9 +242,3 @@ def observation_batch(obs: PointCloudSequence, window_s: float, out_t: torch.Ten
     t0 = obs.timestamps[:, :1]
     return FitBatch(points=obs.points.to(device), lengths=obs.lengths.to(device),
                     timestamps=(obs.timestamps - t0).to(device), window_s=window_s, output_timestamps=out_t.to(device))
-
-
-def timed(fn, *args, **kwargs):
-    t = time.perf_counter()
-    out = fn(*args, **kwargs)
-    return out, time.perf_counter() - t

@@ -25,12 +25,12 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
         files = sorted(root.rglob("*.npz")) if root.is_dir() else [root]
         if not files:
             raise FileNotFoundError(f"--data {data}: no .npz motion files under {root}")
+        import numpy as np
+
         by_id = {}
         for f in files:
-            with open(f, "rb") as fh:
-                import numpy as np
-
-                keys = set(np.load(fh, allow_pickle=False).files)
+            with np.load(f, allow_pickle=False) as npz:
+                keys = set(npz.files)
             m = load_amass(f) if "mocap_framerate" in keys or "mocap_frame_rate" in keys else Motion.load(f)
             by_id[str(f.relative_to(root) if root.is_dir() else f.name)] = m
     if body is not None:
@@ -69,16 +69,13 @@ def select_sequences(motions_by_id: dict, count) -> list[str]:
     for sid in ids:
         groups[motions_by_id[sid].meta.get("subject", "")].append(sid)
     # spread within each subject too: take evenly spaced sequences
-    per = {s: g for s, g in groups.items()}
-    chosen, k = [], 0
     n = int(count)
-    order = sorted(per)
-    quotas = {s: n // len(order) + (1 if i < n % len(order) else 0) for i, s in enumerate(order)}
-    for s in order:
-        g, q = per[s], quotas[s]
+    order = sorted(groups)
+    chosen = []
+    for i, s in enumerate(order):
+        g, q = groups[s], n // len(order) + (1 if i < n % len(order) else 0)
         step = len(g) / max(q, 1)
-        chosen += [g[int(i * step)] for i in range(min(q, len(g)))]
-        k += q
+        chosen += [g[int(k * step)] for k in range(min(q, len(g)))]
     return sorted(chosen)
 
 
