@@ -101,6 +101,23 @@ class Decoded:
     extra: dict = field(default_factory=dict)
 
 
+@dataclass
+class ExportSpec:
+    """What :meth:`PriorAdapter.export_decoder` returns.
+
+    module: an ``nn.Module`` in eval mode whose ``forward(*inputs)`` takes latent tensors (batch
+        first) and returns a tuple of tensors (batch first), e.g. rotations (B, T, 22, 3, 3) and,
+        where the prior encodes it, translation (B, T, 3). No Python control flow on values.
+    example_inputs: a tuple of example tensors with batch size >= 2.
+    input_names / output_names: ONNX names, one per input / output.
+    """
+
+    module: torch.nn.Module
+    example_inputs: tuple
+    input_names: list
+    output_names: list
+
+
 class PriorAdapter(torch.nn.Module):
     """Base class of every prior adapter (see module docstring)."""
 
@@ -138,6 +155,24 @@ class PriorAdapter(torch.nn.Module):
         raise NotImplementedError
 
     # -- optional -------------------------------------------------------------------------
+    def encode_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Latents of whole motions, for priors with an encoder (``has_encoder = True``).
+
+        rotations (B, T, 22, 3, 3) local rotations (root = world orientation, y up), trans (B, T, 3)
+        metres, timestamps (B, T) seconds from the window start. Returns latents that ``decode``
+        accepts for the same window (the reconstruction table decodes them at 30 fps; the denoise and
+        in-between tables start their fits from them). Deterministic: the posterior mean.
+        """
+        raise NotImplementedError(f"prior {self.name!r} has no motion encoder")
+
+    def export_decoder(self) -> "ExportSpec":
+        """The deterministic decode path (latents -> body parameters) as a plain module for ONNX.
+
+        ``python -m benchmark export-onnx NAME`` traces ``spec.module(*spec.example_inputs)`` with a
+        dynamic batch dimension (dim 0 of every input and output).
+        """
+        raise NotImplementedError(f"prior {self.name!r} does not export its decoder")
+
     def describe(self) -> str:
         n = sum(p.numel() for p in self.parameters())
         return f"{self.name} ({self.size}): {n:,} parameters\n{self}"

@@ -109,6 +109,40 @@ def pose_frames(motions: list, every: int = 1, max_frames: int | None = None, se
     return frames
 
 
+def motion_windows(motions: list, frames: int, stride: int, fps: float | None = 30.0,
+                   max_windows: int | None = None, seed: int = 0) -> torch.Tensor:
+    """(N, frames, 69) windows of ``motions``: per frame [axis-angle poses 22x3 (66), translation (3)].
+
+    Each motion is resampled to ``fps`` (SLERP, exact rate; None keeps its frames), then cut into
+    windows of ``frames`` consecutive frames every ``stride`` frames (windows never span two
+    motions). Translation is absolute (world, y up); a prior normalises it as its paper does. If
+    more than ``max_windows`` remain, a seeded random subset is kept. Split the result with
+    :func:`unpack_windows`. Float32, CPU.
+    """
+    if frames < 1 or stride < 1:
+        raise ValueError(f"frames and stride must be >= 1, got {frames}, {stride}")
+    chunks = []
+    for m in motions:
+        if fps is not None and abs(m.fps - fps) > 1e-6:
+            m = m.resample_fps(fps)
+        x = torch.cat([torch.as_tensor(m.poses, dtype=torch.float32).reshape(-1, NUM_JOINTS * 3),
+                       torch.as_tensor(m.trans, dtype=torch.float32)], dim=1)
+        if x.shape[0] >= frames:
+            chunks.append(x.unfold(0, frames, stride).permute(0, 2, 1))
+    if not chunks:
+        raise ValueError(f"no motion has {frames} frames at {fps} fps")
+    out = torch.cat(chunks).contiguous()
+    if max_windows is not None and out.shape[0] > max_windows:
+        g = torch.Generator().manual_seed(seed)
+        out = out[torch.randperm(out.shape[0], generator=g)[:max_windows].sort().values]
+    return out
+
+
+def unpack_windows(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, F, 69) windows -> poses (N, F, 22, 3) axis-angle, trans (N, F, 3)."""
+    return x[..., : NUM_JOINTS * 3].unflatten(-1, (NUM_JOINTS, 3)), x[..., NUM_JOINTS * 3 :]
+
+
 def fixed_rest_skeleton() -> tuple[torch.Tensor, str]:
     """(22, 3) rest joint positions (metres, pelvis at the origin) and where they come from.
 

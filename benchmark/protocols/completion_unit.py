@@ -174,3 +174,12 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
         "timings": {"fit_s": t1 - t0, "eval_s": t2 - t1}, "device": str(device), "na_reason": None,
         "fit_log": info["history"],
     }
+
+
+# -- the protocol-module interface (benchmark.protocols.table_run.PROTOCOL_MODULES) ----------------
+def make_source(spec: dict, body, motions_by_id: dict, seed: int) -> CompletionData:
+    return CompletionData(spec, body, motions_by_id, seed)
+
+
+def run_unit(unit, spec: dict, profile: dict, adapter, body, source: CompletionData, device) -> dict:
+    return run_completion_unit(unit, spec, profile, adapter, body, source, device)

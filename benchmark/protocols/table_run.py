@@ -85,24 +85,63 @@ def _sha_file(path: str | None) -> str | None:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+# Protocol modules, by the ``protocol`` field of a table spec. Each module provides
+#   make_source(spec, body, motions_by_id, seed) -> data source (builds and caches unit inputs)
+#   run_unit(unit, spec, profile, adapter, body, source, device) -> unit result dict
+#       {unit_id, spec_hash, prior, cell, sequence_ids, fingerprint, per_sequence: [{id, frames,
+#        sums: {<si metric>: sum over frames}}], timings: {fit_s, eval_s}, device, na_reason, ...}
+# and optionally
+#   load_motions(spec, data, body) -> {id: Motion}   (default: :func:`load_motions` with the window)
+#   na_reason(spec, adapter) -> str | None            (a prior that cannot serve the table: n/a cells)
+PROTOCOL_MODULES = {
+    "completion": "benchmark.protocols.completion_unit",
+    "sls": "benchmark.protocols.sls",
+    "denoise": "benchmark.protocols.denoise",
+    "inbetween": "benchmark.protocols.inbetween",
+    "reconstruction": "benchmark.protocols.reconstruction",
+}
+
+
+def protocol_module(spec):
+    import importlib
+
+    name = spec.get("protocol")
+    if name not in PROTOCOL_MODULES:
+        raise ValueError(f"{spec.get('_source', spec.get('name'))}: field 'protocol' is {name!r}; "
+                         f"known protocols: {sorted(PROTOCOL_MODULES)}")
+    return importlib.import_module(PROTOCOL_MODULES[name])
+
+
+def na_result(unit, reason: str) -> dict:
+    """The result of a unit that a prior cannot serve: no numbers, the reason in the JSON."""
+    return {
+        "unit_id": unit.unit_id, "spec_hash": unit.spec_hash, "prior": unit.prior, "cell": dict(unit.cell),
+        "sequence_ids": list(unit.sequence_ids), "fingerprint": "n/a", "per_sequence": [],
+        "timings": {"fit_s": 0.0, "eval_s": 0.0}, "device": "none", "na_reason": reason,
+    }
+
+
 def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="only-missing", size="embedded",
               weights=None, data=None, backend="local") -> dict:
     from benchmark.cli_run import make_adapter
-    from benchmark.protocols.completion_unit import CompletionData, run_completion_unit
     from benchmark.results import derive_table, plan_units
     from benchmark.runner import run_units
     from benchmark.writers import format_markdown, write_table
 
-    if spec["protocol"] != "completion":
-        raise ValueError(f"table {spec['name']!r}: protocol {spec['protocol']!r} is not implemented yet")
+    module = protocol_module(spec)
     weights = weights or {}
     unknown = set(weights) - set(priors)
     if unknown:
         raise ValueError(f"--weights given for priors not being run: {sorted(unknown)}")
-    motions = load_motions(data, float(spec["data"]["window_s"]), body)
+    if hasattr(module, "load_motions"):
+        motions = module.load_motions(spec, data, body)
+    else:
+        motions = load_motions(data, float(spec["data"]["window_s"]), body)
     ids = select_sequences(motions, profile["sequences"])
-    print(f"{len(ids)} sequences, {len(priors)} priors, {len(spec['grid']['points']) * len(spec['grid']['fps'])} cells, "
-          f"{profile['steps']} steps per fit")
+    n_cells = 1
+    for values in spec["grid"].values():
+        n_cells *= len(values)
+    print(f"{len(ids)} sequences, {len(priors)} priors, {n_cells} cells, {profile['steps']} steps per fit")
 
     adapters = {}
     prior_info = {}
@@ -123,10 +162,14 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
         get_adapter(name)
 
     units = plan_units(spec, profile, priors, ids, seed, device, prior_info)
-    source = CompletionData(spec, body, motions, seed)
+    source = module.make_source(spec, body, motions, seed)
 
     def execute(unit):
-        return run_completion_unit(unit, spec, profile, get_adapter(unit.prior), body, source, device)
+        adapter = get_adapter(unit.prior)
+        reason = module.na_reason(spec, adapter) if hasattr(module, "na_reason") else None
+        if reason:
+            return na_result(unit, reason)
+        return module.run_unit(unit, spec, profile, adapter, body, source, device)
 
     results, failures = run_units(units, execute, out_dir, resume=resume, backend=backend)
     meta = {"units": units, "profile": profile, "seed": seed, "device": str(device), "priors": prior_info,
