@@ -1,9 +1,10 @@
-"""The protocol commands: run, describe, check-prior, train, compare."""
+"""The protocol commands: run, describe, check-prior, train, export-onnx, compare."""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from pathlib import Path
 
 log = logging.getLogger("benchmark")
@@ -62,10 +63,52 @@ def _cmd_run(args) -> int:
     return 1 if result["failures"] else 0
 
 
+def _count(module) -> tuple[int, int]:
+    params = list(module.parameters())
+    return sum(p.numel() for p in params), sum(p.numel() for p in params if p.requires_grad)
+
+
+def parameter_rows(module) -> list[tuple[str, int, int]]:
+    """(name, parameters, trainable) per top-level child of ``module``. An adapter whose parameters
+    all sit in one child (``VPoserSlerp.vposer``) is looked through, so the rows name the
+    network's own parts (``vposer.encoder_net``, ``vposer.decoder_net``) for every size."""
+    children = [(n, c) for n, c in module.named_children() if _count(c)[0] > 0]
+    prefix = ""
+    while len(children) == 1 and _count(children[0][1])[0] == _count(module)[0] and list(children[0][1].children()):
+        name, module = children[0]
+        prefix += name + "."
+        children = [(n, c) for n, c in module.named_children() if _count(c)[0] > 0]
+    rows = [(prefix + n, *_count(c)) for n, c in children]
+    direct = sum(p.numel() for p in module.parameters(recurse=False))
+    if direct:
+        rows.append((prefix + "(own parameters)", direct, sum(p.numel() for p in module.parameters(recurse=False) if p.requires_grad)))
+    return rows
+
+
+def _print_counts(module, note: str = "") -> None:
+    total, trainable = _count(module)
+    print(f"parameters: {total:,} (trainable {trainable:,}{note})")
+    rows = parameter_rows(module)
+    width = max((len(r[0]) for r in rows), default=0)
+    for name, n, t in rows:
+        print(f"  {name.ljust(width)}  {n:>12,}  (trainable {t:,})")
+
+
 def _cmd_describe(args) -> int:
+    from benchmark.registry import get_prior_class
+
+    cls = get_prior_class(args.name)
+    paper_network = getattr(cls, "paper_network", None)
+    if args.size == "paper" and args.weights is None and paper_network is not None:
+        net = paper_network()
+        print(f"{args.name} (paper size, random weights: architecture only, no checkpoint loaded)")
+        print(net)
+        _print_counts(net)
+        return 0
     adapter = make_adapter(args.name, size=args.size, weights=args.weights, device="cpu")
     print(adapter.describe())
-    print(f"parameters: {adapter.parameter_count():,}")
+    frozen = "; the adapter freezes its network" if _count(adapter)[0] and not _count(adapter)[1] else ""
+    _print_counts(adapter, frozen)
     return 0
 
 
@@ -85,6 +128,38 @@ def _cmd_train(args) -> int:
     out = Path(args.out) if args.out else None
     record = cls.train_embedded(out_dir=out, steps=args.steps, seed=args.seed, overwrite=args.force)
     print(record)
+    return 0
+
+
+def _cmd_export_onnx(args) -> int:
+    from benchmark.export_onnx import ParityError, export_onnx, sidecar_path
+
+    out = Path(args.out) if args.out else Path("exports") / f"{args.name}.{args.size}.onnx"
+    adapter = make_adapter(args.name, size=args.size, weights=args.weights, device="cpu")
+    try:
+        record = export_onnx(adapter, out, opset=args.opset, overwrite=args.force, check=not args.no_check)
+    except ParityError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+    def shapes(rows):
+        return ", ".join(f"{r['name']} {tuple(r['shape'])} {r['dtype']}" for r in rows)
+
+    print(f"wrote {record['file']} ({record['onnx_bytes']:,} bytes, opset {record['opset']}, sha256 {record['onnx_sha256'][:16]}...)")
+    print(f"  prior {record['prior']} ({record['size']}), weights {record['weights'] or '(none)'}")
+    print(f"  inputs:  {shapes(record['inputs'])}")
+    print(f"  outputs: {shapes(record['outputs'])}")
+    parity = record["parity"]
+    if parity.get("ok") is None:
+        print("  parity: not checked (--no-check)")
+    else:
+        print(
+            f"  parity (onnxruntime {parity['onnxruntime']} CPU vs PyTorch, batch {parity['batch']}, traced at batch "
+            f"{parity['example_batch']}): max abs error {parity['max_abs_error']:.3g}, max rel error "
+            f"{parity['max_rel_error']:.3g}; {100 * parity['tolerance_used']:.2g}% of the tolerance (rtol {parity['rtol']:g}, "
+            f"atol {parity['atol']:g}): PASS"
+        )
+    print(f"  record: {sidecar_path(out)}")
     return 0
 
 
@@ -111,7 +186,8 @@ def add_run_commands(sub) -> None:
     p.add_argument("--backend", choices=["local"], default="local", help="execution backend (a Ray backend is planned)")
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("describe", help="architecture summary and parameter count of a prior", formatter_class=fmt)
+    p = sub.add_parser("describe", help="architecture summary and parameter counts of a prior (--size paper without --weights: "
+                       "the paper-size network with random weights)", formatter_class=fmt)
     p.add_argument("name")
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
     p.add_argument("--weights", default=None)
@@ -130,6 +206,17 @@ def add_run_commands(sub) -> None:
     p.add_argument("--out", default=None, help="output folder (default: priors/weights)")
     p.add_argument("--force", action="store_true", help="overwrite existing weights")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("export-onnx", help="export a prior's decoder to ONNX (dynamic batch) and check it with onnxruntime",
+                       formatter_class=fmt)
+    p.add_argument("name")
+    p.add_argument("--size", choices=["embedded", "paper"], default="embedded", help="prior size; paper needs --weights")
+    p.add_argument("--weights", default=None, help="checkpoint (embedded: default priors/weights; paper: the official one)")
+    p.add_argument("--out", default=None, help="output .onnx, record written beside it as .json (default: exports/NAME.SIZE.onnx)")
+    p.add_argument("--opset", type=int, default=17, help="ONNX opset version")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file and its record")
+    p.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
+    p.set_defaults(func=_cmd_export_onnx)
 
     p = sub.add_parser("compare", help="per-cell differences between two table JSONs", formatter_class=fmt)
     p.add_argument("a")

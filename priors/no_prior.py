@@ -5,6 +5,12 @@ Latents: ``{"pose": (B, n_observed, 21, 6)}``, the local rotations of SMPL joint
 (the T-pose). Decoding is Gram-Schmidt (``benchmark.rotations.sixd_to_matrix``); the root is
 identity (the protocol owns root orientation and translation) and the prior term is zero. It is
 what VPoser+SLERP would be without VPoser: the protocol's SLERP/LERP fills the other frames.
+
+No network: ``export_decoder`` raises (nothing learned to export; ``export-onnx no-prior`` is a
+clear error) and there is no ``paper_network``. ``encode_motion`` is the exact, lossless change of
+representation (6D of joints 1..21), useful to start a fit from a given motion; ``has_encoder``
+stays False because it is not a learned encoder, so the reconstruction table (encode then decode)
+would only measure float round-off for this row.
 """
 
 from __future__ import annotations
@@ -63,3 +69,33 @@ class NoPrior(PriorAdapter):
         """(B,) zeros."""
         pose = latents["pose"]
         return pose.new_zeros(pose.shape[0])
+
+    def encode_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor) -> dict[str, torch.Tensor]:
+        """rotations (B, T, 22, 3, 3) -> ``{"pose": (B, T, 21, 6)}``: the latents are the rotations.
+
+        The interleaved 6D of joints 1..21 (what ``decode`` expects); decoding them at the same
+        timestamps gives back joints 1..21 exactly (to float round-off) and an identity root. The
+        root orientation and ``trans`` are not latents of this prior (the protocol owns them);
+        ``trans`` and ``timestamps`` are only checked for shape. Not a learned encoder, hence
+        ``has_encoder = False`` (see the module docstring).
+        """
+        if rotations.dim() != 5 or rotations.shape[-3:] != (NUM_JOINTS, 3, 3):
+            raise ValueError(
+                f"no-prior.encode_motion: rotations must be (B, T, {NUM_JOINTS}, 3, 3) local rotations, "
+                f"got {tuple(rotations.shape)}"
+            )
+        B, T = rotations.shape[:2]
+        if tuple(timestamps.shape) != (B, T):
+            raise ValueError(f"no-prior.encode_motion: timestamps must be (B, T) = {(B, T)}, got {tuple(timestamps.shape)}")
+        if trans is not None and tuple(trans.shape) != (B, T, 3):
+            raise ValueError(f"no-prior.encode_motion: trans must be (B, T, 3) = {(B, T, 3)}, got {tuple(trans.shape)}")
+        pose = matrix_to_sixd(rotations[:, :, 1:].to(self._device), layout="interleaved")
+        return {"pose": pose.detach().clone()}
+
+    def export_decoder(self):
+        """Always raises: no-prior has no decoder network (its latents are the 6D rotations and
+        ``decode`` is a Gram-Schmidt), so there is nothing learned to export to ONNX."""
+        raise NotImplementedError(
+            "prior 'no-prior' has no decoder network to export: its latents are the body rotations themselves "
+            "(6D, decoded by Gram-Schmidt); export a prior with a learned decoder, e.g. vposer-slerp"
+        )

@@ -25,6 +25,11 @@ arm of each joint, which the geodesic term alone does not. Adam, lr 1e-3 with a 
 (135k poses), one torch thread: about 3.5 min on one CPU core
 (``python -m priors.vposer --out priors/weights``; record in ``priors/weights/vposer.json``;
 its train losses are measured with dropout on, its validation losses in eval mode).
+
+Beyond the fitting API the adapter provides ``encode_motion`` (per-frame posterior means, for the
+reconstruction table), ``export_decoder`` (ONNX: ``z`` (B, 32) -> ``rotations`` (B, 22, 3, 3),
+identity root; ``python -m benchmark export-onnx vposer-slerp``) and ``paper_network`` (the paper
+size with random weights, for ``python -m benchmark describe vposer-slerp --size paper``).
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ from benchmark.body.lbs import forward_kinematics
 from benchmark.rotations import sixd_to_matrix
 from benchmark.skeleton import NUM_JOINTS
 from priors.base import Decoded, FitBatch, PriorAdapter, WindowSpec
+from priors.base import ExportSpec
 
 log = logging.getLogger(__name__)
 
@@ -390,6 +396,49 @@ class VPoserSlerp(PriorAdapter):
         """(B,) mean over the sequence's latent codes of |z|^2 (sum over the L dims)."""
         return latents["z"].square().sum(-1).mean(-1)
 
+    @classmethod
+    def paper_network(cls) -> VPoser:
+        """The paper-size VPoser V02_05 (hidden 512, latent 32: 936,252 parameters) with random
+        weights, in eval mode: ``python -m benchmark describe vposer-slerp --size paper`` prints its
+        architecture and parameter counts without the (gated) official checkpoint."""
+        return VPoser(**PAPER_CONFIG).eval()
+
+    def encode_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Posterior means of every frame: rotations (B, T, 22, 3, 3) -> ``{"z": (B, T, L)}``.
+
+        VPoser encodes one pose at a time, so the latents are per frame and ``decode(latents,
+        timestamps)`` at the same timestamps gives the per-frame reconstruction (joints 1..21; the
+        root comes back as identity). Only joints 1..21 are encoded: the root orientation (joint
+        0) and ``trans`` are not part of this prior (``encodes_root_orientation`` and
+        ``encodes_translation`` are False), so the protocol supplies them. ``trans`` and
+        ``timestamps`` are only checked for shape. Deterministic (the encoder mean, eval mode), no
+        gradient.
+        """
+        if rotations.dim() != 5 or rotations.shape[-3:] != (NUM_JOINTS, 3, 3):
+            raise ValueError(
+                f"vposer-slerp.encode_motion: rotations must be (B, T, {NUM_JOINTS}, 3, 3) local rotations, "
+                f"got {tuple(rotations.shape)}"
+            )
+        B, T = rotations.shape[:2]
+        if tuple(timestamps.shape) != (B, T):
+            raise ValueError(f"vposer-slerp.encode_motion: timestamps must be (B, T) = {(B, T)}, got {tuple(timestamps.shape)}")
+        if trans is not None and tuple(trans.shape) != (B, T, 3):
+            raise ValueError(f"vposer-slerp.encode_motion: trans must be (B, T, 3) = {(B, T, 3)}, got {tuple(trans.shape)}")
+        return {"z": self.encode_poses(rotations[:, :, 1:])}
+
+    def export_decoder(self) -> ExportSpec:
+        """ONNX export of the decoder: input ``z`` (B, L) -> output ``rotations`` (B, 22, 3, 3).
+
+        One latent per pose (the prior is per-frame; a (B, T, L) sequence is flattened to B*T
+        poses). The output has all 22 SMPL joints, in the same convention as ``decode``: joint 0 is
+        the identity (the protocol owns the root orientation), joints 1..21 are the VPoser decoder's
+        local rotations. Example batch: 2 latents drawn from N(0, I) with seed 0.
+        """
+        module = _VPoserDecoderExport(self.vposer).eval()
+        g = torch.Generator().manual_seed(0)
+        z = torch.randn(2, self.latent_dim, generator=g).to(self.device)
+        return ExportSpec(module=module, example_inputs=(z,), input_names=["z"], output_names=["rotations"])
+
     @torch.no_grad()
     def encode_poses(self, rotmats: torch.Tensor) -> torch.Tensor:
         """(..., 21, 3, 3) local rotations of joints 1..21 -> (..., L) the encoder's mean."""
@@ -398,6 +447,33 @@ class VPoserSlerp(PriorAdapter):
         lead = rotmats.shape[:-3]
         aa = roma.rotmat_to_rotvec(rotmats.reshape(-1, NUM_BODY_JOINTS, 3, 3).to(self.device, torch.float32))
         return self.vposer.encode(aa).mean.reshape(*lead, self.latent_dim)
+
+
+class _VPoserDecoderExport(nn.Module):
+    """The traceable decode path of :meth:`VPoserSlerp.export_decoder`: z (B, L) -> (B, 22, 3, 3)
+    with an identity root.
+
+    Same numbers as ``VPoserSlerp.decode``, written so that the batch dimension stays symbolic in a
+    trace: the 6D -> matrix step is the Gram-Schmidt of ``roma.special_gramschmidt`` (interleaved
+    layout, epsilon 0) restated with ``reshape(-1, ...)``, because roma's own batch flattening
+    records the example's batch size as a constant (an export at batch 2 then fails at batch 5).
+    """
+
+    def __init__(self, vposer: VPoser):
+        super().__init__()
+        self.mlp = vposer.decoder_net[:-1]  # every layer but ContinousRotReprDecoder (shared weights)
+        self.register_buffer("eye", torch.eye(3), persistent=False)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        m = self.mlp(z).reshape(-1, NUM_BODY_JOINTS, 3, 2)  # interleaved: row-major 3x2, columns a1, a2
+        a1, a2 = m[..., 0], m[..., 1]
+        b1 = a1 / torch.linalg.vector_norm(a1, dim=-1, keepdim=True)
+        a2 = a2 - (b1 * a2).sum(-1, keepdim=True) * b1
+        b2 = a2 / torch.linalg.vector_norm(a2, dim=-1, keepdim=True)
+        b3 = torch.cross(b1, b2, dim=-1)
+        body = torch.stack((b1, b2, b3), dim=-1)  # (B, 21, 3, 3), columns b1 b2 b3
+        root = torch.zeros_like(body[:, :1]) + self.eye.to(body.dtype)
+        return torch.cat([root, body], dim=1)
 
 
 # -- training the embedded weights -----------------------------------------------------------

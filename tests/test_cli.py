@@ -44,3 +44,37 @@ def test_bad_input_is_a_clear_error(capsys, tmp_path):
     missing = tmp_path / "nope.bvh"
     assert main(["data", "convert", str(missing), "--out", str(tmp_path / "o.npz")]) == 2
     assert "nope.bvh" in capsys.readouterr().err
+
+
+def test_describe_paper_size_without_weights(capsys):
+    assert main(["describe", "vposer-slerp", "--size", "paper"]) == 0
+    out = capsys.readouterr().out
+    assert "parameters: 936,252 (trainable 936,252)" in out and "random weights" in out
+    assert "encoder_net" in out and "592,062" in out and "344,190" in out  # per top-level child
+
+
+def test_describe_embedded_counts_per_child(capsys):
+    assert main(["describe", "vposer-slerp"]) == 0
+    out = capsys.readouterr().out
+    assert "parameters: 271,676 (trainable 0" in out
+    assert "vposer.encoder_net" in out and "165,054" in out and "vposer.decoder_net" in out and "106,622" in out
+
+
+def test_export_onnx_cli(capsys, tmp_path):
+    out = tmp_path / "v.onnx"
+    assert main(["export-onnx", "vposer-slerp", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert str(out) in text and "z ('batch', 32)" in text and "rotations ('batch', 22, 3, 3)" in text
+    assert "PASS" in text and out.with_suffix(".json").exists()
+    assert main(["export-onnx", "vposer-slerp", "--out", str(out), "--no-check"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert main(["export-onnx", "vposer-slerp", "--out", str(out), "--no-check", "--force"]) == 0
+    assert "not checked" in capsys.readouterr().out
+
+
+def test_export_onnx_no_prior_is_a_clear_error(capsys, tmp_path):
+    assert main(["export-onnx", "no-prior", "--out", str(tmp_path / "np.onnx")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "no-prior" in err and "no decoder" in err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
