@@ -1,0 +1,90 @@
+"""The reconstruction table (PROTOCOL.md "reconstruction"; HM-VAE, Li et al. 2021, Table 3).
+
+Data: clean windows (the grid's ``window``, seconds; 2 s) at 30 fps of the test motions
+(:class:`benchmark.protocols.motion_fit.MotionSource`), ground truth posed on the body with each
+motion's own shape, fixed (never optimised).
+
+Each prior with an encoder (``has_encoder`` and ``encode_motion``) encodes the clean motion (local
+rotations, root included, translation, timestamps from the window start: the posterior mean) and
+its latents are decoded at the same 30 fps frames (:func:`benchmark.protocols.completion.body_parameters`:
+per-frame, fixed-window and continuous priors alike). What the prior does not encode comes from the
+ground truth: root orientation (per frame: the ground-truth root), translation (per frame: the
+ground-truth translation); a heading-normalised decoder gets the mean yaw between the ground-truth
+and the decoded root, a decoder of translation the mean offset between the ground-truth and the
+decoded translation (:func:`benchmark.protocols.motion_fit.set_rigid_from_observation`). No
+optimisation. Priors without an encoder are n/a ("no encoder").
+
+Metrics (sums over the window's frames; the table divides by frames): ``mpjpe_m``, ``pa_mpjpe_m``,
+``v2v_m``, ``accel`` / ``gt_accel`` (mean joint acceleration magnitude of the output / the ground
+truth, m/s^2), ``accer`` (acceleration error, m/s^2); the acceleration metrics are the
+sequence means times its frame count.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from benchmark.metrics.pose import acceleration_error, mean_acceleration, mpjpe, pa_mpjpe
+from benchmark.protocols.motion_fit import (
+    MotionSource, MotionTargets, Timer, decode_parameters, has_motion_encoder,
+    init_motion_state, is_interpolation_baseline, joints_of, load_table_motions, tensor_fingerprint, unit_result,
+    v2v_sums,
+)
+
+NO_ENCODER = "no encoder: the prior cannot encode a motion (has_encoder is False or encode_motion is missing)"
+
+
+# -- the protocol-module interface (benchmark.protocols.table_run.PROTOCOL_MODULES) ----------------
+def load_motions(spec: dict, data, body) -> dict:
+    windows = [float(w) for w in (spec.get("grid") or {}).get("window", [])]
+    return load_table_motions(spec, data, body, longest_window_s=max(windows) if windows else None)
+
+
+def make_source(spec: dict, body, motions_by_id: dict, seed: int) -> MotionSource:
+    return MotionSource(spec, body, motions_by_id, seed)
+
+
+def na_reason(spec: dict, adapter) -> str | None:
+    if is_interpolation_baseline(adapter):
+        return "the SLERP baseline belongs to the in-betweening table (its encode/decode is the identity)"
+    if not has_motion_encoder(adapter):
+        return NO_ENCODER
+    return None
+
+
+def run_unit(unit, spec: dict, profile: dict, adapter, body, source: MotionSource, device) -> dict:
+    window = float(unit.cell.get("window", source.window_s))
+    ids = list(unit.sequence_ids)
+    clean = source.clean(ids, window)
+    B, T = clean.rotations.shape[:2]
+    targets = MotionTargets(timestamps=clean.timestamps, shapes=clean.shapes, window_s=window, joints=clean.joints,
+                            init_rotations=clean.rotations, init_trans=clean.trans)
+    fp = tensor_fingerprint(timestamps=clean.timestamps, rotations=clean.rotations, trans=clean.trans,
+                            shapes=clean.shapes)
+    g = torch.Generator().manual_seed(unit.seed)
+    timer = Timer(device)
+    with timer:
+        with torch.no_grad():
+            latents = adapter.encode_motion(clean.rotations, clean.trans, clean.timestamps)
+    state = init_motion_state(adapter, body, targets, g, device, latents=latents)  # rigid: ground truth
+    with timer:
+        rot, trans = decode_parameters(state, clean.timestamps)
+    t_eval = time.perf_counter()
+    joints = joints_of(body, clean.shapes, rot, trans)
+    fps = clean.fps
+    err = mpjpe(joints, clean.joints, reduction="sum")
+    pa = pa_mpjpe(joints, clean.joints, reduction="sum")
+    v2v = v2v_sums(body, clean.shapes, rot, trans, clean.rotations, clean.trans)
+    accel = mean_acceleration(joints, fps)
+    gt_accel = mean_acceleration(clean.joints, fps)
+    accer = acceleration_error(joints, clean.joints, fps)
+    per_seq = [
+        {"frames": T, "sums": {"mpjpe_m": err[b], "pa_mpjpe_m": pa[b], "v2v_m": v2v[b], "accel": accel[b] * T,
+                               "gt_accel": gt_accel[b] * T, "accer": accer[b] * T}}
+        for b in range(B)
+    ]
+    eval_s = time.perf_counter() - t_eval
+    return unit_result(unit, fp, per_seq, fit_s=timer.seconds, eval_s=eval_s, device=device,
+                       method="encode_motion -> decode")
