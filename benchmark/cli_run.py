@@ -9,7 +9,12 @@ from pathlib import Path
 
 log = logging.getLogger("benchmark")
 
-DEFAULT_PRIORS = ("no-prior", "vposer-slerp")
+DEFAULT_PRIORS = ("no-prior", "vposer-slerp")  # when a table spec has no ``default_priors``
+
+
+def default_priors(spec: dict) -> list[str]:
+    """The rows a table runs without --prior: the spec's ``default_priors``, else DEFAULT_PRIORS."""
+    return list(spec.get("default_priors") or DEFAULT_PRIORS)
 
 
 def _device(name: str | None) -> str:
@@ -53,7 +58,7 @@ def _cmd_run(args) -> int:
     print(f"device {device}, seed {args.seed}, output {args.out}")
     body = get_body(args.body, device=device)
     result = run_table(
-        spec, profile, priors=args.prior or list(DEFAULT_PRIORS), body=body, device=device, seed=args.seed,
+        spec, profile, priors=args.prior or default_priors(spec), body=body, device=device, seed=args.seed,
         out_dir=Path(args.out), resume=args.resume, size=args.size, weights=_parse_pairs(args.weights, "--weights"),
         data=args.data, backend=args.backend,
     )
@@ -173,7 +178,7 @@ def add_run_commands(sub) -> None:
     fmt = argparse.ArgumentDefaultsHelpFormatter
     p = sub.add_parser("run", help="run a table (e.g. table1) for some priors", formatter_class=fmt)
     p.add_argument("table")
-    p.add_argument("--prior", action="append", help=f"prior name (repeatable); default: {' '.join(DEFAULT_PRIORS)}")
+    p.add_argument("--prior", action="append", help="prior name (repeatable); default: the table spec's default_priors (python -m benchmark list)")
     p.add_argument("--profile", default=None, help="smoke | quick | full (default: full on CUDA, quick on CPU)")
     p.add_argument("--device", default=None, help="cpu | cuda (default: cuda when available)")
     p.add_argument("--seed", type=int, default=0)
