@@ -1,0 +1,97 @@
+"""Regression: re-run the smoke profile of the sls, denoise, inbetween and reconstruction tables
+and compare each with its committed golden (``results/<table>.smoke.json``).
+
+Goldens change only through ``python -m pytest tests/test_tables_regression.py --update-goldens``
+(refused under CI). Each table runs its spec's ``default_priors``. Tolerances are in the metrics'
+units; observation fingerprints are compared exactly (every prior of a cell saw the same input).
+Timing columns (``s_per_frame``) are measured, machine-dependent, and never compared.
+"""
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from benchmark.catalog import get_profile, load_table_spec
+from benchmark.cli_run import default_priors
+from benchmark.compare import compare_tables
+from benchmark.protocols.table_run import run_table
+from benchmark.results import metric_specs
+from benchmark.writers import write_table
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLES = ("sls", "denoise", "inbetween", "reconstruction")
+# per unit suffix; metrics without a suffix (accelerations in m/s^2, quaternion loss) get UNITLESS
+TOLERANCE_BY_SUFFIX = {"_mm": 3.0}
+UNITLESS = 0.05
+NOT_COMPARED = {"s_per_frame"}
+
+
+def _tolerances(spec) -> dict:
+    tol = {}
+    for m in metric_specs(spec):
+        name = m["name"]
+        if name in NOT_COMPARED:
+            tol[name] = float("inf")
+            continue
+        tol[name] = next((v for s, v in TOLERANCE_BY_SUFFIX.items() if name.endswith(s)), None)
+        if tol[name] is None:
+            tol[name] = UNITLESS if "accel" not in name and "accer" not in name else 0.5
+    return tol
+
+
+@pytest.fixture(scope="module", params=TABLES)
+def smoke(request, tmp_path_factory, anny_body):
+    name = request.param
+    spec = load_table_spec(name)
+    out = tmp_path_factory.mktemp(f"{name}_smoke")
+    result = run_table(spec, get_profile("smoke"), priors=default_priors(spec), body=anny_body, device="cpu", seed=0,
+                       out_dir=out)
+    assert not result["failures"], result["failures"]
+    yield name, spec, result["table"]
+    shutil.rmtree(out, ignore_errors=True)
+
+
+def test_smoke_table_is_well_formed(smoke):
+    name, spec, table = smoke
+    assert [r["prior"] for r in table["rows"]] == default_priors(spec)
+    n_cells = 1
+    for values in spec["grid"].values():
+        n_cells *= len(values)
+    served = 0
+    for row in table["rows"]:
+        assert len(row["cells"]) == n_cells
+        for cell in row["cells"]:
+            if cell.get("na_reason"):
+                assert isinstance(cell["na_reason"], str) and len(cell["na_reason"]) > 5
+                continue
+            served += 1
+            for m in metric_specs(spec):
+                v = cell.get(m["name"])
+                assert v is None or v == v, f"{name}/{row['prior']}: {m['name']} is NaN"
+    assert served > 0, f"{name}: no prior served any cell"
+    # every prior that served a cell saw the same observation
+    by_cell = {}
+    for row in table["rows"]:
+        for i, cell in enumerate(row["cells"]):
+            if not cell.get("na_reason"):
+                by_cell.setdefault(i, set()).add(cell["fingerprint"])
+    assert all(len(v) == 1 for v in by_cell.values()), f"{name}: priors saw different observations in a cell"
+
+
+def test_smoke_table_matches_golden(smoke, update_goldens):
+    name, spec, table = smoke
+    golden_path = ROOT / "results" / f"{name}.smoke.json"
+    if update_goldens:
+        write_table(table, golden_path.parent, stem=f"{name}.smoke", formats=("json", "md"))
+        pytest.skip(f"{golden_path} rewritten (explicit --update-goldens)")
+    if not golden_path.exists():
+        pytest.fail(f"{golden_path} is missing: create it with --update-goldens")
+    golden = json.loads(golden_path.read_text())
+    ok, rows = compare_tables(golden, table, _tolerances(spec))
+    problems = [r for r in rows if not r.get("ok", True)]
+    assert ok, f"smoke {name} differs from the golden beyond tolerance: {problems[:6]}"
+    for g_row, n_row in zip(golden["rows"], table["rows"]):
+        for g, n in zip(g_row["cells"], n_row["cells"]):
+            assert g.get("fingerprint") == n.get("fingerprint"), f"{name}: the observations changed: regenerate goldens knowingly"
