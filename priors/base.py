@@ -131,6 +131,7 @@ class PriorAdapter(torch.nn.Module):
     shape_conditioned: bool = False
     has_encoder: bool = False
     sixd_layout: str | None = None  # "interleaved" (VPoser/Xu) or "columns" (HM-VAE), if it uses 6D
+    constant_latents: tuple[str, ...] = ()  # latents entries the decoder reads but never optimises (no gradient)
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__()

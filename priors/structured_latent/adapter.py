@@ -1,0 +1,272 @@
+"""The prior adapter of the structured latent space (see the package docstring for the model)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from benchmark.interpolate import lerp_frames, slerp_frames
+from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
+from priors.structured_latent.network import PAPER_CHUM_CONFIG, PAPER_CONFIG, StructuredLatentCVAE
+from priors.structured_latent.representation import (
+    ANCHORS, JOINTS, SIXD_LAYOUT, canonical_frame, canonicalise, motion_to_chi, resample_anchors,
+)
+from priors.structured_latent.train import CHECKPOINT_NAME, train_structured_latent
+
+log = logging.getLogger(__name__)
+
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / CHECKPOINT_NAME
+CHECKPOINT_FORMAT = "structured-latent/1"
+TRAIN_COMMAND = "python -m benchmark train structured-latent"
+OFFICIAL_UNKNOWN = (
+    "structured-latent size 'paper' has no loader for official weights: the authors' code and any checkpoint "
+    "(gitlab.inria.fr/mmarsot/a-structured-latent-space; github.com/mmarsot/A_structured_latent_space is only a README "
+    "pointer) were not reachable when this adapter was written, so these are unknown: the checkpoint file format and "
+    "its state-dict key names, the encoder/decoder layer types and widths (the paper gives only dim(z) = 64, or 256 for "
+    "its CHUM comparison, and 8 SMPL betas), the 6D layout, and the training-set normalisation statistics "
+    "(translation min/max, timestamp max) that chi needs. Use size='embedded' (priors/weights/structured_latent.pt, "
+    f"`{TRAIN_COMMAND}`), or add a loader to priors/structured_latent/adapter.py after inspecting the official files. "
+    "`python -m benchmark describe structured-latent --size paper` prints the paper-size architecture assumed here."
+)
+
+
+# -- checkpoints ------------------------------------------------------------------------------
+def load_checkpoint(path: str | Path) -> tuple[StructuredLatentCVAE, dict]:
+    """Build and strictly load a project checkpoint ``{"state_dict", "config": {"network",
+    "normalisation", "format"}}`` (written by :func:`train_structured_latent`). Every tensor of the
+    network must be present with its shape and nothing else may be (errors name the file and key)."""
+    path = Path(path)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise ValueError(f"{path}: not a readable structured-latent checkpoint ({type(exc).__name__}: {exc}); "
+                         f"retrain with `{TRAIN_COMMAND}`") from exc
+    if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict) or not isinstance(ckpt.get("config"), dict):
+        top = sorted(ckpt)[:20] if isinstance(ckpt, dict) else type(ckpt).__name__
+        raise ValueError(f"{path}: expected a dict with 'state_dict' and 'config' (priors/weights/{CHECKPOINT_NAME}), found {top}")
+    cfg = ckpt["config"]
+    if "network" not in cfg:
+        raise ValueError(f"{path}: field 'config.network' is missing; retrain with `{TRAIN_COMMAND}`")
+    try:
+        net = StructuredLatentCVAE(**cfg["network"])
+    except TypeError as exc:
+        raise ValueError(f"{path}: field 'config.network' = {cfg['network']!r} does not describe a StructuredLatentCVAE ({exc})") from exc
+    raw = ckpt["state_dict"]
+    expected = net.state_dict()
+    for key, ref in expected.items():
+        if key not in raw:
+            raise KeyError(f"{path}: missing key {key!r} (shape {tuple(ref.shape)}); the checkpoint must hold all of {sorted(expected)}")
+        if not torch.is_tensor(raw[key]) or raw[key].shape != ref.shape:
+            found = tuple(raw[key].shape) if torch.is_tensor(raw[key]) else type(raw[key]).__name__
+            raise ValueError(f"{path}: key {key!r} has shape {found}, expected {tuple(ref.shape)} for config {net.config}")
+    extra = sorted(set(raw) - set(expected))
+    if extra:
+        raise ValueError(f"{path}: unexpected keys {extra[:10]} (not part of StructuredLatentCVAE with config {net.config})")
+    net.load_state_dict(raw, strict=True)
+    return net, cfg
+
+
+class _AnchorDecoder(nn.Module):
+    """(z (B, L), shape (B, S)) -> (anchor rotations (B, 100, 22, 3, 3), anchor trans (B, 100, 3) m,
+    tau_hat (B, 100) s): the deterministic decode path, for ONNX."""
+
+    def __init__(self, net: StructuredLatentCVAE):
+        super().__init__()
+        self.net = net
+
+    def forward(self, z: torch.Tensor, shape: torch.Tensor):
+        return self.net.decode_motion(z, shape)
+
+
+# -- the adapter ------------------------------------------------------------------------------
+class StructuredLatentPrior(PriorAdapter):
+    """Structured latent space (Marsot et al. 3DV 2022) as a continuous-time prior.
+
+    Latents: ``{"z": (B, L), "window_s": (B, 1)}``; z starts as a sample of N(0, I) (the paper's
+    §5 does not say how z is initialised; this is the project's rule for prior samples), window_s
+    is the duration the 100 decoded anchors are spread over (``FitBatch.window_s``; read detached,
+    never optimised: see :attr:`constant_latents`). decode: the decoder gives 100 anchors with
+    predicted timestamps tau_hat; they are mapped affinely onto [0, window_s] (first anchor at 0,
+    last at window_s) and SLERP / LERP-ed to the requested timestamps. :meth:`decode_anchors`
+    gives the anchors and the raw tau_hat (seconds) for the sls protocol's timestamp term.
+    Prior term |z|^2. Output in the canonical frame (initial heading removed, initial ground-plane
+    position zero): the protocol's free heading and offset place it.
+    """
+
+    name = "structured-latent"
+    paper = "Marsot et al., A structured latent space for human body motion generation (3DV 2022)"
+    window = WindowSpec(kind="continuous")
+    encodes_translation = True
+    encodes_root_orientation = True
+    heading_normalised = True
+    joints = JOINTS
+    shape_conditioned = True
+    has_encoder = True
+    sixd_layout = SIXD_LAYOUT
+    anchors = ANCHORS
+    constant_latents = ("window_s",)  # latents decode reads but never differentiates (zero gradient)
+    init = "sample"  # "sample": z ~ N(0, I); "zero": z = 0 (the prior mean)
+
+    def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
+        super().__init__(size=size, weights=weights, device=device)
+        if size == "paper":
+            raise ValueError(OFFICIAL_UNKNOWN + ("" if weights is None else f" (weights given: {weights})"))
+        if size != "embedded":
+            raise ValueError(f"structured-latent: unknown size {size!r}; expected 'embedded' or 'paper'")
+        path = Path(weights) if weights is not None else DEFAULT_WEIGHTS
+        if not path.exists():
+            raise FileNotFoundError(
+                f"embedded structured-latent weights not found: {path}. Train them with `{TRAIN_COMMAND}` "
+                "(or `python -c \"from priors.structured_latent import StructuredLatentPrior as P; P.train_embedded()\"`)"
+            )
+        self.net, self.checkpoint_config = load_checkpoint(path)
+        self.weights_path = str(path)
+        for p in self.net.parameters():
+            p.requires_grad_(False)
+        self.to(device)
+        self.net.eval()
+
+    @classmethod
+    def from_network(cls, net: StructuredLatentCVAE) -> "StructuredLatentPrior":
+        """An adapter around an in-memory network (tests, freshly trained models); frozen."""
+        self = cls.__new__(cls)
+        PriorAdapter.__init__(self, size="embedded", weights=None)
+        self.net, self.checkpoint_config = net, {"network": net.config, "normalisation": net.normalisation()}
+        for p in self.net.parameters():
+            p.requires_grad_(False)
+        self.net.eval()
+        return self
+
+    # -- properties ---------------------------------------------------------------------------
+    @property
+    def latent_dim(self) -> int:
+        return self.net.latent
+
+    @property
+    def shape_dim(self) -> int:
+        return self.net.shape_dim
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.net.parameters()).device
+
+    def train(self, mode: bool = True):
+        """The prior is frozen: its network stays in eval mode."""
+        super().train(mode)
+        self.net.eval()
+        return self
+
+    # -- latents ------------------------------------------------------------------------------
+    def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        B = batch.batch_size
+        if self.init == "zero":
+            z = torch.zeros(B, self.latent_dim)
+        else:
+            z = torch.randn((B, self.latent_dim), generator=generator, device=generator.device, dtype=torch.float32)
+        window = torch.full((B, 1), float(batch.window_s), dtype=torch.float32)
+        return {"z": z.to(self.device), "window_s": window.to(self.device)}
+
+    def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B,) |z|^2."""
+        return latents["z"].square().sum(-1)
+
+    def _shape(self, shape: torch.Tensor | None, B: int, like: torch.Tensor) -> torch.Tensor:
+        if shape is None:
+            return like.new_full((B, self.shape_dim), self.net.shape_center)
+        if shape.dim() != 2 or shape.shape != (B, self.shape_dim):
+            raise ValueError(
+                f"structured-latent: shape must be (B, {self.shape_dim}) = {(B, self.shape_dim)} (the decoder is conditioned "
+                f"on {self.shape_dim} shape numbers: the body's shape vector), got {tuple(shape.shape)}; use a body whose "
+                f"shape_dim is {self.shape_dim} (the embedded Anny body has 6) or retrain with config shape_dim"
+            )
+        return shape.to(like)
+
+    def _z(self, latents: dict) -> torch.Tensor:
+        z = latents.get("z")
+        if z is None or z.dim() != 2 or z.shape[1] != self.latent_dim:
+            raise ValueError(f"structured-latent: latents['z'] must be (B, {self.latent_dim}), got "
+                             f"{None if z is None else tuple(z.shape)}")
+        return z
+
+    # -- decoding -----------------------------------------------------------------------------
+    def decode_anchors(self, latents: dict[str, torch.Tensor], shape: torch.Tensor | None = None) -> tuple[Decoded, torch.Tensor]:
+        """The 100 decoded anchors: (Decoded(rotations (B, 100, 22, 3, 3), trans (B, 100, 3) m),
+        tau_hat (B, 100) seconds since the first anchor, non-decreasing), canonical frame."""
+        z = self._z(latents)
+        rot, trans, tau = self.net.decode_motion(z, self._shape(shape, z.shape[0], z))
+        tau = torch.cummax(tau, dim=1).values  # a no-op for the monotone time head
+        return Decoded(rotations=rot, trans=trans), tau
+
+    def anchor_times(self, latents: dict[str, torch.Tensor], tau: torch.Tensor) -> torch.Tensor:
+        """tau_hat (B, 100) -> the anchors' times in the window: affinely onto [0, window_s]
+        (``latents["window_s"]``, detached); without "window_s", tau_hat itself."""
+        window = latents.get("window_s")
+        rel = tau - tau[:, :1]
+        if window is None:
+            return rel
+        window = window.detach().to(tau).reshape(-1, 1)
+        return rel / rel[:, -1:].clamp_min(1e-6) * window
+
+    def decode(self, latents: dict[str, torch.Tensor], timestamps: torch.Tensor, shape: torch.Tensor | None = None) -> Decoded:
+        """Body parameters at ``timestamps`` (B, T) s from the window start (class docstring)."""
+        anchors, tau = self.decode_anchors(latents, shape)
+        B = tau.shape[0]
+        if timestamps.dim() != 2 or timestamps.shape[0] != B:
+            raise ValueError(f"structured-latent: timestamps must be (B, T) with B = {B}, got {tuple(timestamps.shape)}")
+        t_anchor = self.anchor_times(latents, tau)
+        ts = timestamps.to(t_anchor.device)
+        rot = slerp_frames(anchors.rotations, t_anchor, ts)
+        trans = lerp_frames(anchors.trans, t_anchor, ts)
+        return Decoded(rotations=rot, trans=trans, extra={"anchor_times": t_anchor, "tau_hat": tau})
+
+    # -- encoding -----------------------------------------------------------------------------
+    @torch.no_grad()
+    def encode_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Posterior means of whole motions: rotations (B, T, 22, 3, 3), trans (B, T, 3), timestamps
+        (B, T) s -> {"z": (B, L), "window_s": (B, 1) = t_last - t_first}. The motion is resampled to
+        100 anchors over [t_first, t_last] and aligned; decode reproduces it at ``timestamps -
+        timestamps[:, :1]`` in the canonical frame (:meth:`canonical_frame` gives the way back)."""
+        dev = self.device
+        rot, tr, tau = resample_anchors(rotations.to(dev, torch.float32), trans.to(dev, torch.float32), timestamps.to(dev))
+        rot, tr, _, _ = canonicalise(rot, tr)
+        chi = motion_to_chi(rot, tr, tau, self.net.trans_min, self.net.trans_max, self.net.tau_max)
+        mu, _ = self.net.encode(chi)
+        span = (timestamps[:, -1] - timestamps[:, 0]).to(dev, torch.float32)[:, None]
+        return {"z": mu, "window_s": span}
+
+    @staticmethod
+    def canonical_frame(rotations: torch.Tensor, trans: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(yaw0 (B,), offset (B, 3)) of motions: world = R_y(yaw0) @ canonical + offset."""
+        return canonical_frame(rotations, trans)
+
+    # -- export / sizes / training ---------------------------------------------------------------
+    def export_decoder(self) -> ExportSpec:
+        """(z (B, L), shape (B, S)) -> (anchor_rotations (B, 100, 22, 3, 3), anchor_trans (B, 100, 3),
+        tau_hat (B, 100)): the decoder and the de-normalisation of chi, no interpolation."""
+        g = torch.Generator().manual_seed(0)
+        z = torch.randn(2, self.latent_dim, generator=g)
+        shape = torch.full((2, self.shape_dim), self.net.shape_center)
+        return ExportSpec(module=_AnchorDecoder(self.net).eval(), example_inputs=(z, shape), input_names=["z", "shape"],
+                          output_names=["anchor_rotations", "anchor_trans", "tau_hat"])
+
+    @classmethod
+    def paper_network(cls, latent: int = PAPER_CONFIG["latent"]) -> nn.Module:
+        """The paper-size network with random weights (latent 64; ``latent=256`` for the CHUM variant,
+        :data:`PAPER_CHUM_CONFIG`); layer widths are this project's inference (package docstring)."""
+        return StructuredLatentCVAE(**{**PAPER_CONFIG, "latent": int(latent)})
+
+    @classmethod
+    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
+        """``python -m benchmark train structured-latent``: retrain the embedded weights."""
+        out = Path(out_dir) if out_dir is not None else DEFAULT_WEIGHTS.parent
+        target = out / CHECKPOINT_NAME
+        if target.exists() and not overwrite:
+            raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
+        _, record = train_structured_latent(out, steps=steps, seed=seed)
+        return record
+
+
+__all__ = ["StructuredLatentPrior", "load_checkpoint", "DEFAULT_WEIGHTS", "OFFICIAL_UNKNOWN", "PAPER_CHUM_CONFIG"]

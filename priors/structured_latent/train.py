@@ -1,0 +1,391 @@
+"""Training the structured latent space in the paper's two phases (seeds/001 §3.3, Supp. §2).
+
+Data (:func:`build_anchor_data`): every motion of the synthetic train split is cut into
+one-cycle windows by :func:`benchmark.synthetic.cycles.find_cycles` (0.3-3 s, the generator's own
+gait / action phases, both feet as stride starts) and, as this project's extension, into windows
+of fixed durations ``windows_s`` (default 4 s, every ``window_stride_s`` = 2 s) of whatever the
+motion does, so that the 4 s windows of table1 (and other non-cyclic windows) are inside the
+training distribution. Each window is resampled to 100 anchors uniformly in time and aligned
+(representation.py). The translation / timestamp normalisation (min-max) is fitted on the
+training windows and stored in the network's buffers.
+
+Phase 1 (L_init): L_rec = w_pose L_pose + w_trans L_trans + w_time L_time on chi, with GradNorm
+weights (gradnorm.py), + 0.01 KL. Phase 2 (L): L_rec4D = w_spatial L_spatial + w_time L_time +
+0.01 KL, where L_spatial compares "meshes": no SMPL mesh is shipped, so each anchor's body is
+stood in for by the forward-kinematics joints (22) of the subject's own rest skeleton (the one the
+generator used, from ``motion.meta["skeleton"]["rest_joints"]``; the SMPL-like fixed skeleton for
+motions without it) plus two markers per joint, 10 cm along the joint frame's x and z axes (so
+every joint rotation, twist included, moves some point, as mesh vertices would); metres.
+Loss reductions (the paper writes squared norms): each term is the sum of squared errors over the
+whole motion (all anchors and elements of that part), averaged over the batch; KL is summed over
+the latent dimensions, averaged over the batch. Optimiser Adam (the paper does not name it),
+cosine decay of the learning rate to 0.1x within each phase. Paper: phase 1 lr 1e-3 batch 256
+(5000 epochs), phase 2 lr 1e-4 batch 16 (200 epochs); here the phases get ``steps`` split
+(1 - PHASE2_FRACTION) : PHASE2_FRACTION, at the paper's learning rates, phase 2 at its batch
+size, phase 1 at batch 128 (half the paper's: twice the steps for the same CPU time). GradNorm
+measures the terms' gradients at the decoder's last shared activation (gradnorm.py) and updates
+its weights every ``gradnorm_every`` = 1 steps (lr 0.025, alpha 1.5).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmark.body.lbs import forward_kinematics
+from benchmark.rotations import matrix_to_sixd
+from benchmark.skeleton import NUM_JOINTS
+from priors.structured_latent.gradnorm import GradNorm
+from priors.structured_latent.network import EMBEDDED_CONFIG, StructuredLatentCVAE, kl_divergence
+from priors.structured_latent.representation import (
+    ANCHORS, FEATURES, JOINTS, POSE, POSE_DIM, SIXD_LAYOUT, TIME, TRANS, IDENTITY_6D, Normalisation, canonicalise,
+    chi_to_motion,
+)
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_NAME = "structured_latent.pt"
+RECORD_NAME = "structured_latent.json"
+DEFAULT_STEPS = 3000  # total over both phases: about 10-14 min on one CPU core (measured, see the report)
+PHASE2_FRACTION = 0.2
+TRAIN_DEFAULTS = {
+    "batch1": 128, "lr1": 1e-3,  # paper phase 1: batch 256, lr 1e-3
+    "batch2": 16, "lr2": 1e-4,  # paper phase 2
+    "kl_weight": 0.01,  # paper
+    "gradnorm_alpha": 1.5, "gradnorm_lr": 0.025, "gradnorm_every": 1,  # not in the paper
+    "windows_s": (4.0,), "window_stride_s": 2.0,  # project extension (module docstring)
+    "marker_m": 0.1,
+}
+PHASE1_TERMS = ("pose", "trans", "time")
+PHASE2_TERMS = ("spatial", "time")
+
+
+# -- data -------------------------------------------------------------------------------------
+def _rest_of(motion) -> tuple[torch.Tensor, str]:
+    sk = motion.meta.get("skeleton") if isinstance(motion.meta, dict) else None
+    if isinstance(sk, dict) and "rest_joints" in sk:
+        rest = torch.as_tensor(sk["rest_joints"], dtype=torch.float32)
+        if rest.shape == (NUM_JOINTS, 3):
+            return rest, "meta"
+    from priors.training import SMPL_LIKE_REST_JOINTS
+
+    return torch.tensor(SMPL_LIKE_REST_JOINTS, dtype=torch.float32), "smpl-like"
+
+
+def _subset(n: int, k: int | None, seed: int, salt: int) -> np.ndarray:
+    if k is None or n <= k:
+        return np.arange(n)
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), salt]))
+    return np.sort(rng.choice(n, size=k, replace=False))
+
+
+def build_anchor_data(motions, *, cycles: bool = True, windows_s=TRAIN_DEFAULTS["windows_s"],
+                      window_stride_s: float = TRAIN_DEFAULTS["window_stride_s"], cycle_options: dict | None = None,
+                      max_cycles: int | None = None, max_windows: int | None = None, shape_dim: int | None = None,
+                      seed: int = 0) -> dict:
+    """Aligned 100-anchor windows of ``motions`` (module docstring), not yet normalised.
+
+    Returns {"pose": (N, 100, 120) 6D minus identity, "trans": (N, 100, 3) m (canonical),
+    "tau": (N, 100) s, "shape": (N, S), "rest": (N, 22, 3), "is_cycle": (N,) bool, "counts": {...}}.
+    A motion without ``shape`` gets zeros of ``shape_dim`` (required then).
+    """
+    from benchmark.synthetic.cycles import find_cycles, resample_intervals
+
+    opts = dict(cycle_options or {})
+    per = []
+    rest_sources: dict[str, int] = {}
+    for i, m in enumerate(motions):
+        iv, flag = [], []
+        if cycles:
+            cyc = find_cycles(m, **opts)
+            iv += [(c.start, c.end) for c in cyc]
+            flag += [True] * len(cyc)
+        t0, t1 = float(m.timestamps[0]), float(m.timestamps[-1])
+        for D in windows_s or ():
+            n_win = int(math.floor((t1 - t0 - D) / window_stride_s + 1e-9)) + 1 if t1 - t0 >= D - 1e-9 else 0
+            iv += [(t0 + k * window_stride_s, t0 + k * window_stride_s + D) for k in range(n_win)]
+            flag += [False] * n_win
+        if iv:
+            per.append((i, iv, flag))
+    all_flags = np.array([f for _, _, fl in per for f in fl], dtype=bool)
+    cyc_idx, win_idx = np.nonzero(all_flags)[0], np.nonzero(~all_flags)[0]
+    keep = np.zeros(len(all_flags), dtype=bool)
+    keep[cyc_idx[_subset(len(cyc_idx), max_cycles, seed, 1)]] = True
+    keep[win_idx[_subset(len(win_idx), max_windows, seed, 2)]] = True
+    N = int(keep.sum())
+    pose = torch.empty(N, ANCHORS, POSE_DIM)
+    trans = torch.empty(N, ANCHORS, 3)
+    tau = torch.empty(N, ANCHORS)
+    shapes, rests, is_cycle = [], [], []
+    eye6 = torch.tensor(IDENTITY_6D)
+    pos, flat = 0, 0
+    for i, iv, fl in per:
+        sel = keep[flat : flat + len(iv)]
+        flat += len(iv)
+        if not sel.any():
+            continue
+        m = motions[i]
+        iv = [x for x, s in zip(iv, sel) if s]
+        fl = [x for x, s in zip(fl, sel) if s]
+        rot, tr, rel = resample_intervals(m, iv, ANCHORS)
+        rot, tr, _, _ = canonicalise(rot, tr)
+        K = rot.shape[0]
+        pose[pos : pos + K] = (matrix_to_sixd(rot[:, :, list(JOINTS)], SIXD_LAYOUT) - eye6).flatten(-2)
+        trans[pos : pos + K] = tr
+        tau[pos : pos + K] = rel.float()
+        if m.shape is not None:
+            shp = m.shape.float()
+        elif shape_dim is not None:
+            shp = torch.zeros(shape_dim)
+        else:
+            raise ValueError(f"{m.source or f'motion {i}'}: field 'shape' is missing; give every motion a shape or pass shape_dim")
+        rest, src = _rest_of(m)
+        rest_sources[src] = rest_sources.get(src, 0) + K
+        shapes.append(shp.expand(K, -1))
+        rests.append(rest.expand(K, -1, -1))
+        is_cycle += fl
+        pos += K
+    if N == 0:
+        raise ValueError("build_anchor_data: no cycle or window found in the motions")
+    return {
+        "pose": pose, "trans": trans, "tau": tau, "shape": torch.cat(shapes).contiguous(), "rest": torch.cat(rests).contiguous(),
+        "is_cycle": torch.tensor(is_cycle), "counts": {"motions": len(motions), "cycles": int(sum(is_cycle)),
+                                                       "windows": int(N - sum(is_cycle)), "rest_skeleton": rest_sources},
+    }
+
+
+def finalise(data: dict, norm: Normalisation) -> dict:
+    """Add "chi" (N, 100, 124) to ``data`` (normalised with ``norm``); drops the raw pose to save memory."""
+    N = data["pose"].shape[0]
+    chi = torch.empty(N, ANCHORS, FEATURES)
+    chi[..., POSE] = data.pop("pose")
+    tmin, tmax = torch.tensor(norm.trans_min, dtype=torch.float32), torch.tensor(norm.trans_max, dtype=torch.float32)
+    chi[..., TRANS] = 2 * (data["trans"] - tmin) / (tmax - tmin) - 1
+    chi[..., TIME] = data["tau"] / norm.tau_max
+    data["chi"] = chi
+    return data
+
+
+# -- losses ---------------------------------------------------------------------------------------
+def mesh_points(rot: torch.Tensor, trans: torch.Tensor, rest: torch.Tensor, marker: float = TRAIN_DEFAULTS["marker_m"]) -> torch.Tensor:
+    """The "mesh" of phase 2: FK joints and two markers per joint (module docstring).
+    rot (B, n, 22, 3, 3), trans (B, n, 3), rest (B, 22, 3) -> (B, n, 66, 3) metres."""
+    g_rot, joints = forward_kinematics(rot, rest[:, None])
+    pts = torch.cat([joints, joints + marker * g_rot[..., :, 0], joints + marker * g_rot[..., :, 2]], dim=-2)
+    return pts + trans[..., None, :]
+
+
+def phase1_losses(model: StructuredLatentCVAE, chi: torch.Tensor, shape: torch.Tensor, sample: bool = True) -> dict:
+    out = model(chi, shape, sample=sample)
+    d = out["chi"] - chi
+    return {
+        "pose": d[..., POSE].square().sum((1, 2)).mean(),
+        "trans": d[..., TRANS].square().sum((1, 2)).mean(),
+        "time": d[..., TIME].square().sum(1).mean(),
+        "kl": kl_divergence(out["mu"], out["sigma"]).mean(),
+        "_shared": out["shared"],
+    }
+
+
+def phase2_losses(model: StructuredLatentCVAE, chi: torch.Tensor, shape: torch.Tensor, rest: torch.Tensor,
+                  sample: bool = True, marker: float = TRAIN_DEFAULTS["marker_m"]) -> dict:
+    out = model(chi, shape, sample=sample)
+    norm = (model.trans_min, model.trans_max, model.tau_max)
+    rot_hat, tr_hat, _ = chi_to_motion(out["chi"], *norm)
+    with torch.no_grad():
+        rot, tr, _ = chi_to_motion(chi, *norm)
+        target = mesh_points(rot, tr, rest, marker)
+    pts = mesh_points(rot_hat, tr_hat, rest, marker)
+    return {
+        "spatial": (pts - target).square().sum((1, 2, 3)).mean(),
+        "time": (out["chi"][..., TIME] - chi[..., TIME]).square().sum(1).mean(),
+        "kl": kl_divergence(out["mu"], out["sigma"]).mean(),
+        "_shared": out["shared"],
+    }
+
+
+@torch.no_grad()
+def evaluate(model: StructuredLatentCVAE, data: dict, chunk: int = 256, marker: float = TRAIN_DEFAULTS["marker_m"]) -> dict:
+    """Both phases' loss parts at the posterior mean, and the joint error (mm, mean over anchors and
+    the 22 FK joints) and timestamp error (ms) of the reconstructions. Eval mode, no gradient."""
+    was = model.training
+    model.eval()
+    N = data["chi"].shape[0]
+    tot: dict[str, float] = {}
+    for i in range(0, N, chunk):
+        chi, shape, rest = data["chi"][i : i + chunk], data["shape"][i : i + chunk], data["rest"][i : i + chunk]
+        parts = {**{f"p1_{k}": v for k, v in phase1_losses(model, chi, shape, sample=False).items() if k != "_shared"},
+                 **{f"p2_{k}": v for k, v in phase2_losses(model, chi, shape, rest, sample=False, marker=marker).items()
+                    if k != "_shared"}}
+        norm = (model.trans_min, model.trans_max, model.tau_max)
+        rot_hat, tr_hat, tau_hat = model.decode_motion(model.encode(chi)[0], shape)
+        rot, tr, tau = chi_to_motion(chi, *norm)
+        j_hat = forward_kinematics(rot_hat, rest[:, None])[1] + tr_hat[..., None, :]
+        j = forward_kinematics(rot, rest[:, None])[1] + tr[..., None, :]
+        parts["joint_error_mm"] = (j_hat - j).norm(dim=-1).mean() * 1000
+        parts["time_error_ms"] = (tau_hat - tau).abs().mean() * 1000
+        for k, v in parts.items():
+            tot[k] = tot.get(k, 0.0) + float(v) * chi.shape[0]
+    model.train(was)
+    return {k: v / N for k, v in tot.items()}
+
+
+# -- the loop -----------------------------------------------------------------------------------
+def _run_phase(model, data, *, terms, loss_fn, steps, batch_size, lr, kl_weight, alpha, gn_lr, gn_every, seed, log_every, label):
+    N = data["chi"].shape[0]
+    batch_size = min(batch_size, N)
+    gen = torch.Generator().manual_seed(seed)
+    gn = GradNorm(terms, alpha=alpha, lr=gn_lr)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps)))
+    model.train()
+    perm, pos = torch.randperm(N, generator=gen), 0
+    history, window = [], []
+    final = {}
+    t0 = time.perf_counter()
+    for step in range(1, steps + 1):
+        if pos + batch_size > N:
+            perm, pos = torch.randperm(N, generator=gen), 0
+        idx = perm[pos : pos + batch_size]
+        pos += batch_size
+        parts = loss_fn(model, idx)
+        shared = parts.pop("_shared")
+        rec = gn.combine({k: parts[k] for k in terms}, shared, update=(step - 1) % gn_every == 0)
+        loss = rec + kl_weight * parts["kl"]
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"{label}: non-finite loss at step {step}: { {k: float(v) for k, v in parts.items()} }")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        window.append({"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in parts.items()},
+                       **{f"w_{k}": v for k, v in gn.as_dict().items()}})
+        if step % log_every == 0 or step == steps:
+            final = {k: sum(w[k] for w in window) / len(window) for k in window[0]}
+            history.append({"step": step, **final})
+            log.info("%s step %d/%d %s", label, step, steps, " ".join(f"{k}={v:.4g}" for k, v in final.items()))
+            window = []
+    wall = time.perf_counter() - t0
+    return {"steps": steps, "batch_size": batch_size, "lr": lr, "wall_s": round(wall, 2),
+            "s_per_step": round(wall / max(steps, 1), 4), "final_train": final, "history": history,
+            "gradnorm_weights": gn.as_dict()}
+
+
+def train_structured_latent(out_dir=None, steps: int | None = None, seed: int = 0, *, config: dict | None = None,
+                            motions=None, val_motions=None, data: dict | None = None, val_data: dict | None = None,
+                            phase2_fraction: float = PHASE2_FRACTION, log_every: int = 100, max_cycles: int | None = None,
+                            max_windows: int | None = None, cycle_options: dict | None = None, **overrides):
+    """Train the structured latent space; write ``structured_latent.pt`` + ``.json`` into ``out_dir``.
+
+    steps: total optimiser steps (default :data:`DEFAULT_STEPS`), phase 2 gets ``phase2_fraction``.
+    config: network config (default :data:`EMBEDDED_CONFIG`). Data: ``data`` / ``val_data`` from
+    :func:`build_anchor_data` (not finalised), else built from ``motions`` / ``val_motions``, else
+    from the synthetic "train" / "val" splits. ``overrides``: any key of :data:`TRAIN_DEFAULTS`.
+    ``out_dir=None`` writes nothing. Returns (model in eval mode, record).
+    """
+    from priors import training
+
+    unknown = set(overrides) - set(TRAIN_DEFAULTS)
+    if unknown:
+        raise TypeError(f"train_structured_latent: unknown options {sorted(unknown)}; known: {sorted(TRAIN_DEFAULTS)}")
+    opt = {**TRAIN_DEFAULTS, **overrides}
+    cfg = {**EMBEDDED_CONFIG, **(config or {})}
+    steps = DEFAULT_STEPS if steps is None else int(steps)
+    if steps < 2:
+        raise ValueError(f"steps must be >= 2 (two phases), got {steps}")
+    steps2 = max(1, int(round(steps * phase2_fraction)))
+    steps1 = max(1, steps - steps2)
+    build = dict(windows_s=opt["windows_s"], window_stride_s=opt["window_stride_s"], cycle_options=cycle_options,
+                 shape_dim=cfg["shape_dim"], seed=seed)
+    t_data = time.perf_counter()
+    data_info: dict = {}
+    if data is None:
+        if motions is None:
+            motions = training.load_split_motions("train")
+            data_info["train_source"] = "benchmark.synthetic.splits.build_split('train')"
+            if val_motions is None and val_data is None:
+                try:
+                    val_motions = training.load_split_motions("val")
+                    data_info["val_source"] = "benchmark.synthetic.splits.build_split('val')"
+                except Exception as exc:  # recorded; training goes on without validation
+                    log.warning("no validation split (%s)", exc)
+                    data_info["val_source"] = f"unavailable: {type(exc).__name__}: {exc}"
+        else:
+            data_info["train_source"] = "motions given"
+        data = build_anchor_data(motions, max_cycles=max_cycles, max_windows=max_windows, **build)
+    else:
+        data_info["train_source"] = "data given"
+        data = dict(data)
+    if val_data is None and val_motions is not None:
+        val_data = build_anchor_data(val_motions, **build)
+        data_info.setdefault("val_source", "motions given")
+    elif val_data is not None:
+        val_data = dict(val_data)
+    if data["shape"].shape[1] != cfg["shape_dim"]:
+        raise ValueError(f"training shapes have {data['shape'].shape[1]} numbers, config shape_dim is {cfg['shape_dim']}")
+    norm = Normalisation.fit(data["trans"], data["tau"])
+    data = finalise(data, norm)
+    if val_data is not None:
+        val_data = finalise(val_data, norm)
+    data_info["train"] = data["counts"]
+    data_info["val"] = val_data["counts"] if val_data is not None else None
+    data_s = time.perf_counter() - t_data
+
+    training.seed_everything(seed)
+    model = StructuredLatentCVAE(**cfg)
+    model.set_normalisation(norm.trans_min, norm.trans_max, norm.tau_max)
+    chi, shape, rest = data["chi"], data["shape"], data["rest"]
+    common = dict(kl_weight=opt["kl_weight"], alpha=opt["gradnorm_alpha"], gn_lr=opt["gradnorm_lr"],
+                  gn_every=max(1, int(opt["gradnorm_every"])), log_every=log_every)
+    old_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        p1 = _run_phase(model, data, terms=PHASE1_TERMS, steps=steps1, batch_size=opt["batch1"], lr=opt["lr1"], seed=seed,
+                        loss_fn=lambda m, i: phase1_losses(m, chi[i], shape[i]), label="phase1", **common)
+        p1["final_val"] = evaluate(model, val_data, marker=opt["marker_m"]) if val_data is not None else None
+        p2 = _run_phase(model, data, terms=PHASE2_TERMS, steps=steps2, batch_size=opt["batch2"], lr=opt["lr2"], seed=seed + 1,
+                        loss_fn=lambda m, i: phase2_losses(m, chi[i], shape[i], rest[i], marker=opt["marker_m"]),
+                        label="phase2", **common)
+        p2["final_val"] = evaluate(model, val_data, marker=opt["marker_m"]) if val_data is not None else None
+    finally:
+        torch.set_num_threads(old_threads)
+    model.eval()
+    record = {
+        "prior": "structured-latent",
+        "network": "priors/structured_latent/network.py StructuredLatentCVAE",
+        "config": model.config,
+        "normalisation": norm.to_dict(),
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "data": data_info,
+        "data_build_s": round(data_s, 2),
+        "loss": {"phase1": "GradNorm(pose, trans, time) sums of squared chi errors + kl_weight * KL",
+                 "phase2": f"GradNorm(spatial, time): spatial = summed squared distances (m^2) of FK joints + 2 markers/joint "
+                           f"({opt['marker_m']} m) on the subject's rest skeleton; + kl_weight * KL"},
+        "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in opt.items()},
+        "steps": {"total": steps, "phase1": steps1, "phase2": steps2},
+        "seed": seed,
+        "phase1": p1,
+        "phase2": p2,
+        "train_wall_s": round(p1["wall_s"] + p2["wall_s"], 2),
+        "torch_threads_training": 1,
+        **training.environment_record(),
+    }
+    if out_dir is not None:
+        out = Path(out_dir)
+        ckpt = training.save_checkpoint(out / CHECKPOINT_NAME, model.state_dict(),
+                                        {"network": model.config, "normalisation": norm.to_dict(), "format": "structured-latent/1"})
+        record["checkpoint_bytes"] = ckpt.stat().st_size
+        training.write_record(out / RECORD_NAME, record)
+        log.info("wrote %s (%d bytes) and %s", ckpt, record["checkpoint_bytes"], out / RECORD_NAME)
+    return model, record
+
+
+__all__ = [
+    "CHECKPOINT_NAME", "RECORD_NAME", "DEFAULT_STEPS", "PHASE2_FRACTION", "TRAIN_DEFAULTS", "build_anchor_data", "finalise",
+    "mesh_points", "phase1_losses", "phase2_losses", "evaluate", "train_structured_latent",
+]
