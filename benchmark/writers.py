@@ -39,7 +39,8 @@ METRIC_NAMES = {
 }
 UNIT_SUFFIXES = ("mm", "cm", "m", "deg", "rad", "s")
 # How a grid axis value is shown in a column label.
-AXIS_LABELS = {"points": "{} pts", "fps": "{} fps", "sigma": "σ = {}", "gap": "gap {}", "frames": "{} frames"}
+AXIS_LABELS = {"points": "{} pts", "fps": "{} fps", "sigma": "σ = {}", "gap": "gap {}", "frames": "{} frames", "sweep": "{}",
+               "mode": "{}"}
 
 
 # --------------------------------------------------------------------------------------------
