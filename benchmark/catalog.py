@@ -39,11 +39,18 @@ def load_profiles() -> dict:
     return yaml.safe_load(resources.files("benchmark").joinpath("profiles.yaml").read_text())
 
 
-def get_profile(name: str) -> dict:
+def get_profile(name: str, table: str | None = None) -> dict:
+    """A profile's sizes, with the profile's per-table overrides (``tables: {TABLE: {...}}`` in
+    profiles.yaml) applied for ``table``: some tables cost far more per sequence than others."""
     profiles = load_profiles()
     if name not in profiles:
         raise KeyError(f"unknown profile {name!r}; known: {', '.join(profiles)}")
-    return {"name": name, **profiles[name]}
+    prof = dict(profiles[name])
+    overrides = prof.pop("tables", None) or {}
+    if table is not None and table in overrides:
+        prof.update(overrides[table])
+        prof["table_override"] = table
+    return {"name": name, **prof}
 
 
 def table_rows():

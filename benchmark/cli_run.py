@@ -53,7 +53,7 @@ def _cmd_run(args) -> int:
     spec = load_table_spec(args.table)
     device = _device(args.device)
     profile_name = args.profile or ("full" if device.startswith("cuda") else "quick")
-    profile = get_profile(profile_name)
+    profile = get_profile(profile_name, table=spec["name"])
     print(f"table {args.table} (protocol v{spec['protocol_version']}), profile {profile_name!r}: {profile['description']}")
     print(f"device {device}, seed {args.seed}, output {args.out}")
     body = get_body(args.body, device=device)
