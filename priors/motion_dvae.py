@@ -234,17 +234,6 @@ def unwrap_rotvec(aa: torch.Tensor) -> torch.Tensor:
     return torch.stack(out, dim=1)
 
 
-def motion_state(rot_c: torch.Tensor, trans_c: torch.Tensor, fps: float = FPS) -> torch.Tensor:
-    """Canonical rotations (B, T, 22, 3, 3) and translation (B, T, 3) -> states (B, T, 138)."""
-    if rot_c.shape[1] < 2:
-        raise ValueError(f"motion-dvae: a motion needs at least 2 frames, got {rot_c.shape[1]}")
-    aa = unwrap_rotvec(matrix_to_axis_angle(rot_c))  # (B, T, 22, 3)
-    pos = torch.cat([trans_c, aa.flatten(-2)], dim=-1)  # (B, T, 69)
-    vel = (pos[:, 1:] - pos[:, :-1]) * fps
-    vel = torch.cat([vel[:, :1], vel], dim=1)
-    return torch.cat([pos, vel], dim=-1)
-
-
 def canonical_poses(windows: torch.Tensor, chunk: int = 2048) -> torch.Tensor:
     """(N, F, 69) raw windows (``priors.training.motion_windows``: axis-angle 22x3, translation) ->
     (N, F, 69) canonical pose sequences [trans (3), root aa (3), body aa (63)], unwrapped in time."""

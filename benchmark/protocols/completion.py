@@ -94,7 +94,15 @@ def body_parameters(state: FitState, timestamps: torch.Tensor, observed: bool = 
     else:
         raise ValueError(f"prior {a.name!r}: unknown window kind {kind!r}")
     _check_decoded(a, Decoded(rot, trans), timestamps)
+    return apply_free_rigid(state, rot, trans, timestamps, observed)
 
+
+def apply_free_rigid(state: FitState, rot: torch.Tensor, trans: torch.Tensor | None, timestamps: torch.Tensor,
+                     observed: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The protocol's free rigid parameters of ``state`` composed with decoded (rot, trans) at
+    ``timestamps`` (B, T): per-observed-frame root orientation (SLERP-ed) on the root, then the
+    heading about y on root and translation, then per-observed-frame translation (LERP-ed) and the
+    offset added. ``observed``: the timestamps are the observed ones (no interpolation)."""
     if state.root is not None:
         R = roma.special_gramschmidt(state.root.unflatten(-1, (3, 2)))
         R = R if observed else slerp_frames(R, state.obs_t, timestamps)

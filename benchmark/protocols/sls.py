@@ -101,10 +101,9 @@ import roma
 import torch
 
 from benchmark.degrade import degrade, fingerprint
-from benchmark.interpolate import lerp_frames, slerp_frames
 from benchmark.metrics.chamfer import chamfer_loss
 from benchmark.observations import Landmarks, PointCloudSequence, ground_truth_at, sample_surface
-from benchmark.protocols.completion import FitState, body_parameters, init_state
+from benchmark.protocols.completion import FitState, apply_free_rigid, body_parameters, init_state
 from benchmark.protocols.completion_unit import UnitData, evaluate, stable_seed
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from priors.base import FitBatch, PriorAdapter
@@ -368,22 +367,8 @@ def uses_anchor_decoder(adapter) -> bool:
 
 
 def _rigid(state: FitState, rot: torch.Tensor, trans: torch.Tensor | None, timestamps: torch.Tensor):
-    """The free rigid parameters of ``state`` applied to decoded (rot, trans) at ``timestamps``
-    (B, T): the same composition as :func:`benchmark.protocols.completion.body_parameters`."""
-    if state.root is not None:
-        R = slerp_frames(roma.special_gramschmidt(state.root.unflatten(-1, (3, 2))), state.obs_t, timestamps)
-        rot = torch.cat([(R @ rot[:, :, 0])[:, :, None], rot[:, :, 1:]], dim=2)
-    if state.heading is not None:
-        zero = torch.zeros_like(state.heading)
-        H = roma.rotvec_to_rotmat(torch.cat([zero, state.heading, zero], dim=-1))[:, None]
-        rot = torch.cat([(H[:, :, None] @ rot[:, :, :1]), rot[:, :, 1:]], dim=2)
-        if trans is not None:
-            trans = (H @ trans[..., None])[..., 0]
-    if state.trans is not None:
-        free = lerp_frames(state.trans, state.obs_t, timestamps)
-        trans = free if trans is None else trans + free
-    if state.offset is not None:
-        trans = trans + state.offset[:, None]
+    """The free rigid parameters of ``state`` applied to decoded (rot, trans) at ``timestamps``."""
+    rot, trans = apply_free_rigid(state, rot, trans, timestamps)
     if trans is None:
         raise ValueError(f"prior {state.adapter.name!r}: decode_anchors gave no translation and the protocol has none free")
     return rot, trans
