@@ -343,6 +343,8 @@ def test_tiny_training_decreases_loss_and_writes(tmp_path):
     assert rec["parameters"]["total"] == sum(p.numel() for p in net.parameters())
     assert (tmp_path / "frequency_guided.json").exists()
     a = FrequencyGuidedPrior(size="embedded", weights=str(tmp_path / "frequency_guided.pt"))
-    assert torch.equal(a.network.rest_joints, net.rest_joints)
+    # the checkpoint stores float16 (halves the embedded file); loading casts back to float32
+    assert torch.load(tmp_path / "frequency_guided.pt", weights_only=True)["state_dict"]["rest_joints"].dtype == torch.float16
+    assert torch.allclose(a.network.rest_joints, net.rest_joints, atol=1e-3)
     with pytest.raises(FileExistsError, match="--force"):
         FrequencyGuidedPrior.train_embedded(out_dir=tmp_path)
