@@ -100,3 +100,25 @@ def test_smoke_table_matches_golden(smoke, update_goldens):
     for g_row, n_row in zip(golden["rows"], table["rows"]):
         for g, n in zip(g_row["cells"], n_row["cells"]):
             assert g.get("fingerprint") == n.get("fingerprint"), f"{name}: the observations changed: regenerate goldens knowingly"
+
+
+@pytest.mark.parametrize("name", TABLES)
+def test_committed_default_profile_table_is_consistent(name):
+    """The committed default-profile (quick) reference table, where one is committed: every planned
+    unit done, rows from the spec's priors, and one observation per cell shared by every prior."""
+    path = ROOT / "results" / f"{name}.quick.json"
+    if not path.exists():
+        pytest.skip(f"no committed default-profile table for {name}")
+    table = json.loads(path.read_text())
+    spec = load_table_spec(name)
+    assert table["table"] == name and table["profile"] == "quick"
+    assert (ROOT / "results" / f"{name}.quick.md").exists()
+    assert table["counts"]["units_done"] == table["counts"]["units_planned"]
+    assert set(r["prior"] for r in table["rows"]) <= set(default_priors(spec))
+    by_cell = {}
+    for row in table["rows"]:
+        for i, cell in enumerate(row["cells"]):
+            assert not str(cell.get("na_reason") or "").startswith("incomplete"), (row["prior"], cell)
+            if not cell.get("na_reason"):
+                by_cell.setdefault(i, set()).add(cell["fingerprint"])
+    assert all(len(v) == 1 for v in by_cell.values())
