@@ -958,10 +958,7 @@ def train_frequency_guided(
         # the losses above were measured before the cast.
         half = {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()}
         record["stored_dtype"] = "float16 (cast to float32 on load; losses above measured in float32 before the cast)"
-        ckpt = training.save_checkpoint(out / DEFAULT_WEIGHTS.name, half, net.config)
-        record["checkpoint_bytes"] = ckpt.stat().st_size
-        training.write_record(out / "frequency_guided.json", record)
-        log.info("wrote %s (%d bytes) and %s", ckpt, record["checkpoint_bytes"], out / "frequency_guided.json")
+        training.save_trained(out, DEFAULT_WEIGHTS.name, half, net.config, record)
     return net, record
 
 

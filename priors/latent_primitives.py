@@ -1150,10 +1150,7 @@ def train_sequential_primitives(
     }
     if out_dir is not None:
         out = Path(out_dir)
-        ckpt = training.save_checkpoint(out / DEFAULT_WEIGHTS.name, net.state_dict(), net.config)
-        record["checkpoint_bytes"] = ckpt.stat().st_size
-        training.write_record(out / DEFAULT_WEIGHTS.with_suffix(".json").name, record)
-        log.info("wrote %s (%d bytes)", ckpt, record["checkpoint_bytes"])
+        training.save_trained(out, DEFAULT_WEIGHTS.name, net.state_dict(), net.config, record)
     return net, record
 
 

@@ -1138,10 +1138,7 @@ def train_motion_dvae(
     }
     if out_dir is not None:
         out = Path(out_dir)
-        ckpt = training.save_checkpoint(out / DEFAULT_WEIGHTS.name, model.state_dict(), model.config)
-        record["checkpoint_bytes"] = ckpt.stat().st_size
-        training.write_record(out / "motion_dvae.json", record)
-        log.info("wrote %s (%d bytes) and %s", ckpt, record["checkpoint_bytes"], out / "motion_dvae.json")
+        training.save_trained(out, DEFAULT_WEIGHTS.name, model.state_dict(), model.config, record)
     return model, record
 
 

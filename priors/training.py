@@ -301,6 +301,38 @@ def save_checkpoint(path: str | Path, state_dict: dict, config: dict) -> Path:
     return path
 
 
+
+def save_trained(out_dir: str | Path, checkpoint_name: str, state_dict: dict, config: dict, record: dict) -> Path:
+    """Write a trained model into ``out_dir``: the checkpoint (:func:`save_checkpoint`) and, beside it
+    with the same stem and ``.json``, its training record (``record`` gains ``checkpoint_bytes``).
+    Returns the checkpoint's path."""
+    out = Path(out_dir)
+    ckpt = save_checkpoint(out / checkpoint_name, state_dict, config)
+    record["checkpoint_bytes"] = ckpt.stat().st_size
+    rec_path = out / Path(checkpoint_name).with_suffix(".json").name
+    write_record(rec_path, record)
+    log.info("wrote %s (%d bytes) and %s", ckpt, record["checkpoint_bytes"], rec_path)
+    return ckpt
+
+
+def loop_record(result, *, steps: int, seed: int, lr: float, weight_decay: float, final_lr_ratio: float,
+                batch_size: int) -> dict:
+    """The training-record fields of one :func:`train_loop` run (optimiser, steps, timing, losses,
+    history, environment)."""
+    return {
+        "optimiser": {"name": "Adam", "lr": lr, "weight_decay": weight_decay, "schedule": f"cosine to {final_lr_ratio}*lr",
+                      "batch_size": batch_size},
+        "steps": steps,
+        "seed": seed,
+        "torch_threads_training": 1,
+        "train_wall_s": round(result.wall_s, 2),
+        "seconds_per_step": round(result.wall_s / steps, 4),
+        "final_train": result.final_train,
+        "final_val": result.final_val,
+        "history": result.history,
+        **environment_record(),
+    }
+
 def environment_record() -> dict:
     """Library versions, host, date and git revision, for a training record."""
     try:

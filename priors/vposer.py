@@ -586,10 +586,7 @@ def train_vposer(
     }
     if out_dir is not None:
         out = Path(out_dir)
-        ckpt = training.save_checkpoint(out / "vposer.pt", model.state_dict(), model.config)
-        record["checkpoint_bytes"] = ckpt.stat().st_size
-        training.write_record(out / "vposer.json", record)
-        log.info("wrote %s (%d bytes) and %s", ckpt, record["checkpoint_bytes"], out / "vposer.json")
+        training.save_trained(out, "vposer.pt", model.state_dict(), model.config, record)
     return model, record
 
 

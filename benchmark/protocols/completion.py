@@ -201,6 +201,37 @@ def _set_yaw(state: FitState, base_root, base_heading, yaw: torch.Tensor) -> Non
     state.root.copy_((Y @ R)[..., :2].flatten(-2))
 
 
+LOG_EVERY = 25  # optimisation history: the first, every 25th and the last step
+
+
+def optimise(prior_name: str, parameters, steps: int, lr: float, lr_final_fraction: float, step_loss,
+             callback=None) -> list[dict]:
+    """The protocols' one optimiser: Adam at ``lr``, cosine-annealed to ``lr * lr_final_fraction``
+    over ``steps``.
+
+    ``step_loss(step)`` returns ``(loss, log)``: the scalar loss to minimise and a zero-argument
+    callable giving the history entry's values (called on logged steps only). A non-finite loss
+    raises FloatingPointError naming the prior and the step. ``callback(step, loss)`` is called
+    after every step. Returns the history (a list of ``{"step": ..., **log()}``).
+    """
+    opt = torch.optim.Adam(parameters, lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=lr * lr_final_fraction)
+    history = []
+    for step in range(steps):
+        opt.zero_grad(set_to_none=True)
+        loss, log = step_loss(step)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"prior {prior_name!r}: non-finite loss at step {step}")
+        loss.backward()
+        opt.step()
+        sched.step()
+        if step == 0 or step == steps - 1 or step % LOG_EVERY == 0:
+            history.append({"step": step, **log()})
+        if callback is not None:
+            callback(step, float(loss))
+    return history
+
+
 def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lambda_prior: float,
         generator: torch.Generator, device, lr_final_fraction: float = 0.1, loss_vertices: int | None = None,
         callback=None) -> tuple[FitState, dict]:
@@ -211,29 +242,20 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     """
     subset = body.loss_vertex_indices(loss_vertices)
     state = init_state(adapter, body, batch, generator, device)
-    opt = torch.optim.Adam(state.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=lr * lr_final_fraction)
     B, n = batch.batch_size, batch.num_observed
     points = batch.points.flatten(0, 1)
     lengths = batch.lengths.flatten(0, 1)
-    history = []
-    for step in range(steps):
-        opt.zero_grad(set_to_none=True)
+
+    def step_loss(step):
         rot, trans = body_parameters(state, batch.timestamps, observed=True)
         rest = body.prepare(state.shape())
         verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices  # (B, n, V, 3)
         data = chamfer_loss(verts.flatten(0, 1), points, b_lengths=lengths).view(B, n).mean(1) * 1000.0
         prior = adapter.prior_term(state.latents)
-        loss = (data + lambda_prior * prior).sum()
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"prior {adapter.name!r}: non-finite loss at step {step}")
-        loss.backward()
-        opt.step()
-        sched.step()
-        if step == 0 or step == steps - 1 or step % 25 == 0:
-            history.append({"step": step, "data_mm": float(data.detach().mean()), "prior": float(prior.detach().mean())})
-        if callback is not None:
-            callback(step, float(loss))
+        return (data + lambda_prior * prior).sum(), lambda: {"data_mm": float(data.detach().mean()),
+                                                              "prior": float(prior.detach().mean())}
+
+    history = optimise(adapter.name, state.parameters(), steps, lr, lr_final_fraction, step_loss, callback=callback)
     return state, {"history": history}
 
 

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 import roma
 import torch
 
-from benchmark.protocols.completion import FitState, body_parameters, init_state
+from benchmark.protocols.completion import FitState, body_parameters, init_state, optimise
 from benchmark.skeleton import NUM_JOINTS
 from priors.base import FitBatch, PriorAdapter
 
@@ -344,24 +344,14 @@ def fit_motion(adapter, body, targets: MotionTargets, steps: int, lr: float, lam
     params = free_parameters(state)
     history = []
     if steps > 0 and params:
-        opt = torch.optim.Adam(params, lr=lr)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=lr * lr_final_fraction)
-        for step in range(steps):
-            opt.zero_grad(set_to_none=True)
+        def step_loss(step):
             rot, trans = body_parameters(state, targets.timestamps, observed=True)
             data = data_term(body, rest, rot, trans, targets, rotation_weight_mm2)
             prior = adapter.prior_term(state.latents)
-            loss = (data + lambda_prior * prior).sum()
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"prior {adapter.name!r}: non-finite loss at step {step}")
-            loss.backward()
-            opt.step()
-            sched.step()
-            if step == 0 or step == steps - 1 or step % 25 == 0:
-                history.append({"step": step, "data_mm2": float(data.detach().mean()),
-                                "prior": float(prior.detach().mean())})
-            if callback is not None:
-                callback(step, float(loss))
+            return (data + lambda_prior * prior).sum(), lambda: {"data_mm2": float(data.detach().mean()),
+                                                                  "prior": float(prior.detach().mean())}
+
+        history = optimise(adapter.name, params, steps, lr, lr_final_fraction, step_loss, callback=callback)
     return state, {"history": history}
 
 

@@ -103,7 +103,7 @@ import torch
 from benchmark.degrade import degrade, fingerprint
 from benchmark.metrics.chamfer import chamfer_loss
 from benchmark.observations import Landmarks, PointCloudSequence, ground_truth_at, sample_surface
-from benchmark.protocols.completion import FitState, apply_free_rigid, body_parameters, init_state
+from benchmark.protocols.completion import FitState, apply_free_rigid, body_parameters, init_state, optimise
 from benchmark.protocols.completion_unit import UnitData, evaluate, stable_seed
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from priors.base import FitBatch, PriorAdapter
@@ -479,12 +479,9 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
     weights = AdaptiveWeights(terms_used, B, alpha=float(ad.get("alpha", 1.5)), smoothing=float(ad.get("smoothing", 0.5)),
                               every=int(ad.get("every", 10)))
     latents = list(state.latents.values())
-    opt = torch.optim.Adam(state.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=lr * lr_final)
     flat_pts = None if pts is None else pts.flatten(0, 1)
-    history = []
-    for step in range(steps):
-        opt.zero_grad(set_to_none=True)
+
+    def step_loss(step):
         rot, trans, tau_hat = decode_anchors(state, anchor_t, idx)
         rest = body.prepare(state.shape())
         verts = body.skin(rest, rot, trans, vertex_indices=skin_idx).vertices  # (B, n, K, 3)
@@ -501,18 +498,17 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
         w = weights.w.to(device=device, dtype=verts.dtype)
         data = sum(w[i] * values[i] for i in range(len(values)))
         prior = adapter.prior_term(state.latents)
-        loss = (data + lam * prior).sum()
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"prior {adapter.name!r}: non-finite loss at step {step}")
-        loss.backward()
-        opt.step()
-        sched.step()
-        if step == 0 or step == steps - 1 or step % 25 == 0:
-            entry = {"step": step, "prior": float(prior.detach().mean())}
+
+        def log():
+            entry = {"prior": float(prior.detach().mean())}
             for i, k in enumerate(terms_used):
                 entry[k] = float(values[i].detach().mean())
                 entry[f"w_{k}"] = float(weights.w[i].mean())
-            history.append(entry)
+            return entry
+
+        return (data + lam * prior).sum(), log
+
+    history = optimise(adapter.name, state.parameters(), steps, lr, lr_final, step_loss)
     return state, {"history": history, "terms": terms_used,
                    "weights": {k: weights.w[i].tolist() for i, k in enumerate(terms_used)}}
 

@@ -241,25 +241,12 @@ def train_hmvae(out_dir=None, steps: int = VAE_STEPS, seed: int = 0, *, config: 
         "rest_skeleton": rest_source,
         "loss": f"{W_6D}*MSE(6D) + {W_ROT}*MSE(rotmat) + {W_POS}*MSE(FK joints, m) + {KL_G}*KL(z_g) + {KL_L}*KL(z_l)",
         "deep_only_steps": deep_steps,
-        "optimiser": {"name": "Adam", "lr": lr, "weight_decay": WEIGHT_DECAY, "schedule": f"cosine to {FINAL_LR_RATIO}*lr",
-                      "batch_size": batch_size},
-        "steps": steps,
-        "seed": seed,
-        "torch_threads_training": 1,
-        "train_wall_s": round(result.wall_s, 2),
-        "seconds_per_step": round(result.wall_s / steps, 4),
-        "final_train": result.final_train,
-        "final_val": result.final_val,
-        "history": result.history,
-        **training.environment_record(),
+        **training.loop_record(result, steps=steps, seed=seed, lr=lr, weight_decay=WEIGHT_DECAY,
+                               final_lr_ratio=FINAL_LR_RATIO, batch_size=batch_size),
     }
     if out_dir is not None:
-        out = Path(out_dir)
         cfg = {"kind": "hmvae", "model": config.to_dict(), "rest_skeleton": rest24.tolist()}
-        ckpt = training.save_checkpoint(out / "hmvae.pt", learnable_state_dict(model), cfg)
-        record["checkpoint_bytes"] = ckpt.stat().st_size
-        training.write_record(out / "hmvae.json", record)
-        log.info("wrote %s and %s", ckpt, out / "hmvae.json")
+        training.save_trained(out_dir, "hmvae.pt", learnable_state_dict(model), cfg, record)
     return model, record
 
 
@@ -294,25 +281,12 @@ def train_trajectory(out_dir=None, steps: int = TRAJ_STEPS, seed: int = 0, *,
         "window_frames": frames,
         "rest_skeleton": rest_source,
         "loss": f"{W_VEL}*MSE(standardised root velocity) + {W_TRAJ}*MSE(integrated trajectory, m)",
-        "optimiser": {"name": "Adam", "lr": lr, "weight_decay": WEIGHT_DECAY, "schedule": f"cosine to {FINAL_LR_RATIO}*lr",
-                      "batch_size": batch_size},
-        "steps": steps,
-        "seed": seed,
-        "torch_threads_training": 1,
-        "train_wall_s": round(result.wall_s, 2),
-        "seconds_per_step": round(result.wall_s / steps, 4),
-        "final_train": result.final_train,
-        "final_val": result.final_val,
-        "history": result.history,
-        **training.environment_record(),
+        **training.loop_record(result, steps=steps, seed=seed, lr=lr, weight_decay=WEIGHT_DECAY,
+                               final_lr_ratio=FINAL_LR_RATIO, batch_size=batch_size),
     }
     if out_dir is not None:
-        out = Path(out_dir)
         cfg = {"kind": "hmvae-trajectory", "model": config.to_dict(), "statistics": model.statistics()}
-        ckpt = training.save_checkpoint(out / "hmvae_trajectory.pt", learnable_state_dict(model), cfg)
-        record["checkpoint_bytes"] = ckpt.stat().st_size
-        training.write_record(out / "hmvae_trajectory.json", record)
-        log.info("wrote %s and %s", ckpt, out / "hmvae_trajectory.json")
+        training.save_trained(out_dir, "hmvae_trajectory.pt", learnable_state_dict(model), cfg, record)
     return model, record
 
 

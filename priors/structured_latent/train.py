@@ -377,11 +377,8 @@ def train_structured_latent(out_dir=None, steps: int | None = None, seed: int = 
     }
     if out_dir is not None:
         out = Path(out_dir)
-        ckpt = training.save_checkpoint(out / CHECKPOINT_NAME, model.state_dict(),
-                                        {"network": model.config, "normalisation": norm.to_dict(), "format": "structured-latent/1"})
-        record["checkpoint_bytes"] = ckpt.stat().st_size
-        training.write_record(out / RECORD_NAME, record)
-        log.info("wrote %s (%d bytes) and %s", ckpt, record["checkpoint_bytes"], out / RECORD_NAME)
+        training.save_trained(out, CHECKPOINT_NAME, model.state_dict(),
+                              {"network": model.config, "normalisation": norm.to_dict(), "format": "structured-latent/1"}, record)
     return model, record
 
 
