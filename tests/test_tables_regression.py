@@ -3,7 +3,8 @@ and compare each with its committed golden (``results/<table>.smoke.json``).
 
 Goldens change only through ``python -m pytest tests/test_tables_regression.py --update-goldens``
 (refused under CI). Each table runs its spec's ``default_priors``. Tolerances are in the metrics'
-units; observation fingerprints are compared exactly (every prior of a cell saw the same input).
+units; every prior of a cell must see the same observation (its fingerprint), and fingerprints that
+differ from the golden's are a warning (``test_table1_regression.warn_if_inputs_changed``).
 Timing columns (``s_per_frame``) are measured, machine-dependent, and never compared.
 """
 
@@ -19,6 +20,7 @@ from benchmark.compare import compare_tables
 from benchmark.protocols.table_run import run_table
 from benchmark.results import metric_specs
 from benchmark.writers import write_table
+from test_table1_regression import warn_if_inputs_changed
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLES = ("sls", "denoise", "inbetween", "reconstruction")
@@ -97,9 +99,10 @@ def test_smoke_table_matches_golden(smoke, update_goldens):
     ok, rows = compare_tables(golden, table, _tolerances(spec))
     problems = [r for r in rows if not r.get("ok", True)]
     assert ok, f"smoke {name} differs from the golden beyond tolerance: {problems[:6]}"
-    for g_row, n_row in zip(golden["rows"], table["rows"]):
-        for g, n in zip(g_row["cells"], n_row["cells"]):
-            assert g.get("fingerprint") == n.get("fingerprint"), f"{name}: the observations changed: regenerate goldens knowingly"
+    def fingerprints(t):
+        return {(r["prior"], i): c.get("fingerprint") for r in t["rows"] for i, c in enumerate(r["cells"])}
+
+    warn_if_inputs_changed(fingerprints(golden), fingerprints(table), name)
 
 
 @pytest.mark.parametrize("name", TABLES)
