@@ -952,13 +952,12 @@ def train_frequency_guided(
         **training.environment_record(),
     }
     if out_dir is not None:
-        out = Path(out_dir)
         # Stored as float16 (halves the file: the paper's dense DCT gate alone is 4.2 M weights);
         # loading casts back to float32. Every number the harness reports uses these stored weights;
         # the losses above were measured before the cast.
         half = {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()}
         record["stored_dtype"] = "float16 (cast to float32 on load; losses above measured in float32 before the cast)"
-        training.save_trained(out, DEFAULT_WEIGHTS.name, half, net.config, record)
+        training.save_trained(out_dir, DEFAULT_WEIGHTS.name, half, net.config, record)
     return net, record
 
 

@@ -1149,8 +1149,7 @@ def train_sequential_primitives(
         **training.environment_record(),
     }
     if out_dir is not None:
-        out = Path(out_dir)
-        training.save_trained(out, DEFAULT_WEIGHTS.name, net.state_dict(), net.config, record)
+        training.save_trained(out_dir, DEFAULT_WEIGHTS.name, net.state_dict(), net.config, record)
     return net, record
 
 

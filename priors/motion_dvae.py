@@ -1137,8 +1137,7 @@ def train_motion_dvae(
         **training.environment_record(),
     }
     if out_dir is not None:
-        out = Path(out_dir)
-        training.save_trained(out, DEFAULT_WEIGHTS.name, model.state_dict(), model.config, record)
+        training.save_trained(out_dir, DEFAULT_WEIGHTS.name, model.state_dict(), model.config, record)
     return model, record
 
 

@@ -585,8 +585,7 @@ def train_vposer(
         **training.environment_record(),
     }
     if out_dir is not None:
-        out = Path(out_dir)
-        training.save_trained(out, "vposer.pt", model.state_dict(), model.config, record)
+        training.save_trained(out_dir, "vposer.pt", model.state_dict(), model.config, record)
     return model, record
 
 

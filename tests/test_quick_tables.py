@@ -9,7 +9,6 @@ interrupted regeneration loses nothing, and units made by ``python -m benchmark 
 <dir>/<table>_quick`` with the same specification are reused.
 """
 
-import json
 import os
 from pathlib import Path
 
@@ -17,11 +16,8 @@ import pytest
 
 from benchmark.catalog import get_profile, load_table_spec
 from benchmark.cli_run import default_priors
-from benchmark.compare import compare_tables
 from benchmark.protocols.table_run import run_table
-from benchmark.writers import write_table
-from test_table1_regression import TOLERANCES as TABLE1_TOLERANCES
-from test_tables_regression import _tolerances
+from goldens import check_or_update
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLES = ("table1", "sls", "denoise", "inbetween", "reconstruction")
@@ -36,14 +32,4 @@ def test_quick_table_matches_committed(name, tmp_path, anny_body, update_goldens
     result = run_table(spec, get_profile("quick", table=name), priors=default_priors(spec), body=anny_body, device="cpu",
                        seed=0, out_dir=out)
     assert not result["failures"], result["failures"]
-    table = result["table"]
-    path = ROOT / "results" / f"{name}.quick.json"
-    if update_goldens:
-        write_table(table, path.parent, stem=f"{name}.quick", formats=("json", "md"))
-        pytest.skip(f"{path} rewritten (explicit --update-goldens)")
-    if not path.exists():
-        pytest.fail(f"{path} is missing: create it with --update-goldens")
-    tol = TABLE1_TOLERANCES if name == "table1" else _tolerances(spec)
-    ok, rows = compare_tables(json.loads(path.read_text()), table, tol)
-    problems = [r for r in rows if not r.get("ok", True)]
-    assert ok, f"quick {name} differs from the committed table beyond tolerance: {problems[:6]}"
+    check_or_update(result["table"], ROOT / "results" / f"{name}.quick.json", spec, update_goldens)

@@ -8,25 +8,22 @@ with the same cells of the golden; ``-m slow`` re-runs and compares the full gri
 Tolerances are in the metrics' units (mm): the smoke fit is short, so small floating-point
 differences between machines move it a little; a real change of the protocol, a prior or the
 data moves it far more. Observation fingerprints that differ from the golden's are reported as a
-warning, not a failure (:func:`warn_if_inputs_changed` says why).
+warning, not a failure (``goldens.warn_if_inputs_changed`` says why).
 """
 
 import json
 import shutil
-import warnings
 from pathlib import Path
 
 import pytest
 
 from benchmark.catalog import get_profile, load_table_spec
 from benchmark.cli_run import default_priors
-from benchmark.compare import compare_tables
 from benchmark.protocols.table_run import run_table
-from benchmark.writers import write_table
+from goldens import check_or_update, restrict_to_grid
 
 ROOT = Path(__file__).resolve().parents[1]
 GOLDEN = ROOT / "results" / "table1.smoke.json"
-TOLERANCES = {"chamfer_mm": 1.0, "chamfer_surface_mm": 1.0, "mpjpe_mm": 3.0}
 PRIORS = default_priors(load_table_spec("table1"))  # every prior of the table spec
 CI_GRID = {"points": [100, 1000], "fps": [5]}  # the cells the default run re-computes
 
@@ -41,13 +38,6 @@ def _run(spec, body, out):
                        out_dir=out)
     assert not result["failures"]
     return result["table"]
-
-
-def restrict_to_grid(table: dict, grid: dict) -> dict:
-    """``table`` with only the cells whose coordinates lie in ``grid`` (and ``grid`` as its grid)."""
-    rows = [{**row, "cells": [c for c in row["cells"] if all(c.get(k) in v for k, v in grid.items())]}
-            for row in table["rows"]]
-    return {**table, "grid": dict(grid), "rows": rows}
 
 
 @pytest.fixture(scope="module")
@@ -85,41 +75,10 @@ def test_resume_reuses_every_unit(smoke_table, anny_body):
     assert a == b
 
 
-def _assert_matches_golden(table: dict, grid: dict) -> None:
-    if not GOLDEN.exists():
-        pytest.fail(f"{GOLDEN} is missing: create it with --update-goldens")
-    golden = restrict_to_grid(json.loads(GOLDEN.read_text()), grid)
-    assert all(row["cells"] for row in golden["rows"]), f"{GOLDEN} lacks cells of {grid}: regenerate it with --update-goldens"
-    ok, rows = compare_tables(golden, table, TOLERANCES)
-    problems = [r for r in rows if not r.get("ok", True)]
-    assert ok, f"smoke table1 differs from the golden beyond tolerance: {problems[:6]}"
-    def fingerprints(t):
-        return {(r["prior"], c["points"], c["fps"]): c["fingerprint"] for r in t["rows"] for c in r["cells"]}
-
-    warn_if_inputs_changed(fingerprints(golden), fingerprints(table), "table1")
-
-
-def warn_if_inputs_changed(golden: dict, new: dict, name: str) -> None:
-    """Observation fingerprints are exact hashes of float coordinates. Anny's cache build is not
-    bit-reproducible (its blendshapes differ by up to 4.5e-8 m between two builds on one machine),
-    so a fresh cache can flip a few float32 points and change a digest while the observation is the
-    same to 0.1 micrometre. A changed digest is therefore a warning here; the metrics above are the
-    check (a really different observation moves them), and every prior of a run must still share one
-    observation per cell (test_smoke_table_is_complete)."""
-    changed = sorted(str(k) for k in golden if golden[k] != new.get(k))
-    if changed:
-        warnings.warn(f"{name}: observation fingerprints differ from the golden's in {len(changed)} cell(s) "
-                      f"({', '.join(changed[:3])}...): a different body cache build, or a changed degradation; "
-                      f"the metrics matched within tolerance")
-
-
 def test_matches_committed_golden(smoke_table, update_goldens):
     table, out, spec = smoke_table
-    if update_goldens:
-        GOLDEN.parent.mkdir(exist_ok=True)
-        write_table(table, GOLDEN.parent, stem="table1.smoke", formats=("json", "md"))
-        pytest.skip("goldens rewritten (explicit --update-goldens)")
-    _assert_matches_golden(table, spec["grid"])
+    # --update-goldens runs the full grid (fixture) and rewrites the whole golden
+    check_or_update(table, GOLDEN, spec, update_goldens, grid=None if update_goldens else spec["grid"])
     shutil.rmtree(out, ignore_errors=True)
 
 
@@ -129,7 +88,7 @@ def test_full_grid_matches_committed_golden(tmp_path, anny_body, update_goldens)
     if update_goldens:
         pytest.skip("the golden is being rewritten by test_matches_committed_golden")
     spec = _spec(full=True)
-    _assert_matches_golden(_run(spec, anny_body, tmp_path), spec["grid"])
+    check_or_update(_run(spec, anny_body, tmp_path), GOLDEN, spec, False, grid=spec["grid"])
 
 
 def test_restrict_to_grid_keeps_only_the_named_cells():

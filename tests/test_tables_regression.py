@@ -4,7 +4,8 @@ and compare each with its committed golden (``results/<table>.smoke.json``).
 Goldens change only through ``python -m pytest tests/test_tables_regression.py --update-goldens``
 (refused under CI). Each table runs its spec's ``default_priors``. Tolerances are in the metrics'
 units; every prior of a cell must see the same observation (its fingerprint), and fingerprints that
-differ from the golden's are a warning (``test_table1_regression.warn_if_inputs_changed``).
+differ from the golden's are a warning (``goldens.warn_if_inputs_changed``); tolerances are
+``goldens.tolerances``.
 Timing columns (``s_per_frame``) are measured, machine-dependent, and never compared.
 """
 
@@ -16,34 +17,15 @@ import pytest
 
 from benchmark.catalog import get_profile, load_table_spec
 from benchmark.cli_run import default_priors
-from benchmark.compare import compare_tables
 from benchmark.protocols.table_run import run_table
 from benchmark.results import metric_specs
-from benchmark.writers import write_table
-from test_table1_regression import warn_if_inputs_changed
+from goldens import check_or_update
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLES = ("sls", "denoise", "inbetween", "reconstruction")
-# per unit suffix; metrics without a suffix (accelerations in m/s^2, quaternion loss) get UNITLESS
-TOLERANCE_BY_SUFFIX = {"_mm": 3.0}
-UNITLESS = 0.05
-NOT_COMPARED = {"s_per_frame"}
 # CI-sized grids: the sls dense cells (100 anchors x 10,000 points) cost minutes on 2 CPU cores, so
 # its CI golden covers three of the eight cells (landmarks only, sparse points, sparse frames).
 REGRESSION_GRID = {"sls": {"sweep": ["p0", "p100", "f5"]}}
-
-
-def _tolerances(spec) -> dict:
-    tol = {}
-    for m in metric_specs(spec):
-        name = m["name"]
-        if name in NOT_COMPARED:
-            tol[name] = float("inf")
-            continue
-        tol[name] = next((v for s, v in TOLERANCE_BY_SUFFIX.items() if name.endswith(s)), None)
-        if tol[name] is None:
-            tol[name] = UNITLESS if "accel" not in name and "accer" not in name else 0.5
-    return tol
 
 
 @pytest.fixture(scope="module", params=TABLES)
@@ -89,20 +71,7 @@ def test_smoke_table_is_well_formed(smoke):
 
 def test_smoke_table_matches_golden(smoke, update_goldens):
     name, spec, table = smoke
-    golden_path = ROOT / "results" / f"{name}.smoke.json"
-    if update_goldens:
-        write_table(table, golden_path.parent, stem=f"{name}.smoke", formats=("json", "md"))
-        pytest.skip(f"{golden_path} rewritten (explicit --update-goldens)")
-    if not golden_path.exists():
-        pytest.fail(f"{golden_path} is missing: create it with --update-goldens")
-    golden = json.loads(golden_path.read_text())
-    ok, rows = compare_tables(golden, table, _tolerances(spec))
-    problems = [r for r in rows if not r.get("ok", True)]
-    assert ok, f"smoke {name} differs from the golden beyond tolerance: {problems[:6]}"
-    def fingerprints(t):
-        return {(r["prior"], i): c.get("fingerprint") for r in t["rows"] for i, c in enumerate(r["cells"])}
-
-    warn_if_inputs_changed(fingerprints(golden), fingerprints(table), name)
+    check_or_update(table, ROOT / "results" / f"{name}.smoke.json", spec, update_goldens)
 
 
 @pytest.mark.parametrize("name", TABLES)

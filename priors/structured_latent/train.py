@@ -32,7 +32,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -50,7 +49,7 @@ from priors.structured_latent.representation import (
 log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "structured_latent.pt"
-RECORD_NAME = "structured_latent.json"
+RECORD_NAME = "structured_latent.json"  # training.save_trained writes it beside CHECKPOINT_NAME
 DEFAULT_STEPS = 3000  # total over both phases: about 10-14 min on one CPU core (measured, see the report)
 PHASE2_FRACTION = 0.2
 TRAIN_DEFAULTS = {
@@ -376,8 +375,7 @@ def train_structured_latent(out_dir=None, steps: int | None = None, seed: int = 
         **training.environment_record(),
     }
     if out_dir is not None:
-        out = Path(out_dir)
-        training.save_trained(out, CHECKPOINT_NAME, model.state_dict(),
+        training.save_trained(out_dir, CHECKPOINT_NAME, model.state_dict(),
                               {"network": model.config, "normalisation": norm.to_dict(), "format": "structured-latent/1"}, record)
     return model, record
 

@@ -1,0 +1,90 @@
+"""The committed reference tables (``results/<table>.<profile>.json``) as test oracles: tolerances,
+comparison, and the explicit rewrite, shared by the smoke and quick regression tests.
+
+Tolerances are in the metrics' units. table1 has its own (:data:`TABLE_TOLERANCES`); the other
+tables go by unit suffix (``*_mm``: 3 mm), accelerations get 0.5 m/s^2, other unitless metrics 0.05,
+and measured timings (``s_per_frame``) are never compared.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import pytest
+
+from benchmark.compare import compare_tables
+from benchmark.results import metric_specs
+from benchmark.writers import write_table
+
+TABLE_TOLERANCES = {"table1": {"chamfer_mm": 1.0, "chamfer_surface_mm": 1.0, "mpjpe_mm": 3.0}}
+TOLERANCE_BY_SUFFIX = {"_mm": 3.0}
+UNITLESS = 0.05
+ACCELERATION = 0.5
+NOT_COMPARED = {"s_per_frame"}
+
+
+def tolerances(spec: dict) -> dict:
+    """metric name -> tolerance for the table ``spec``."""
+    if spec["name"] in TABLE_TOLERANCES:
+        return dict(TABLE_TOLERANCES[spec["name"]])
+    tol = {}
+    for m in metric_specs(spec):
+        name = m["name"]
+        if name in NOT_COMPARED:
+            tol[name] = float("inf")
+            continue
+        tol[name] = next((v for s, v in TOLERANCE_BY_SUFFIX.items() if name.endswith(s)), None)
+        if tol[name] is None:
+            tol[name] = UNITLESS if "accel" not in name and "accer" not in name else ACCELERATION
+    return tol
+
+
+def restrict_to_grid(table: dict, grid: dict) -> dict:
+    """``table`` with only the cells whose coordinates lie in ``grid`` (and ``grid`` as its grid)."""
+    rows = [{**row, "cells": [c for c in row["cells"] if all(c.get(k) in v for k, v in grid.items())]}
+            for row in table["rows"]]
+    return {**table, "grid": dict(grid), "rows": rows}
+
+
+def _fingerprints(table: dict) -> dict:
+    keys = sorted(table["grid"])  # a written table's grid has sorted keys, a fresh one the spec's order
+    return {(r["prior"], *((k, c.get(k)) for k in keys)): c.get("fingerprint") for r in table["rows"] for c in r["cells"]}
+
+
+def warn_if_inputs_changed(golden: dict, new: dict, name: str) -> None:
+    """Warn when the observation fingerprints of ``new`` differ from ``golden``'s.
+
+    Fingerprints are exact hashes of float coordinates. Anny's cache build is not bit-reproducible
+    (its blendshapes differ by up to 4.5e-8 m between two builds on one machine), so a fresh cache
+    can flip a few float32 points and change a digest while the observation is the same to 0.1
+    micrometre. A changed digest is therefore a warning; the metrics are the check (a really
+    different observation moves them), and every prior of a run must still share one observation
+    per cell (each regression test's well-formedness check)."""
+    g, n = _fingerprints(golden), _fingerprints(new)
+    changed = sorted(str(k) for k in g if g[k] != n.get(k))
+    if changed:
+        warnings.warn(f"{name}: observation fingerprints differ from the golden's in {len(changed)} cell(s) "
+                      f"({', '.join(changed[:3])}...): a different body cache build, or a changed degradation; "
+                      f"the metrics matched within tolerance")
+
+
+def check_or_update(table: dict, path: Path, spec: dict, update: bool, grid: dict | None = None) -> None:
+    """With ``update``: write ``table`` as ``path`` (JSON and Markdown) and skip. Otherwise compare
+    ``table`` with the committed ``path`` (restricted to ``grid`` when given) within
+    :func:`tolerances` and warn on changed observation fingerprints."""
+    if update:
+        path.parent.mkdir(exist_ok=True)
+        write_table(table, path.parent, stem=path.name[: -len(".json")], formats=("json", "md"))
+        pytest.skip(f"{path} rewritten (explicit --update-goldens)")
+    if not path.exists():
+        pytest.fail(f"{path} is missing: create it with --update-goldens")
+    golden = json.loads(path.read_text())
+    if grid is not None:
+        golden = restrict_to_grid(golden, grid)
+        assert all(row["cells"] for row in golden["rows"]), f"{path} lacks cells of {grid}: regenerate it with --update-goldens"
+    ok, rows = compare_tables(golden, table, tolerances(spec))
+    problems = [r for r in rows if not r.get("ok", True)]
+    assert ok, f"{path.name}: {spec['name']} differs from the committed table beyond tolerance: {problems[:6]}"
+    warn_if_inputs_changed(golden, table, spec["name"])
