@@ -7,6 +7,8 @@ import logging
 import sys
 from pathlib import Path
 
+from benchmark.registry import make_adapter  # noqa: F401  (re-exported for old imports)
+
 log = logging.getLogger("benchmark")
 
 DEFAULT_PRIORS = ("no-prior", "vposer-slerp")  # when a table spec has no ``default_priors``
@@ -35,14 +37,6 @@ def _parse_pairs(items, what: str) -> dict:
             raise ValueError(f"{what} must look like NAME=VALUE, got {item!r}")
         out[key] = value
     return out
-
-
-def make_adapter(name: str, size: str = "embedded", weights: str | None = None, device: str = "cpu"):
-    from benchmark.registry import get_prior_class
-
-    cls = get_prior_class(name)
-    adapter = cls(size=size, weights=weights, device=device)
-    return adapter.to(device).eval()
 
 
 def _cmd_run(args) -> int:

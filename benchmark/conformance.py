@@ -66,7 +66,7 @@ class _Report:
 
 def check_prior(name: str, size: str = "embedded", weights: str | None = None, steps: int = 5, verbose: bool = True) -> bool:
     from benchmark.body import get_body
-    from benchmark.cli_run import make_adapter
+    from benchmark.registry import make_adapter
     from benchmark.degrade import degrade
     from benchmark.protocols.completion import body_parameters, fit, init_state, observation_batch
     from priors.base import PriorAdapter

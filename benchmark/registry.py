@@ -95,3 +95,11 @@ def get_prior_class(name: str):
 
 def prior_names() -> list[str]:
     return sorted(registry())
+
+
+def make_adapter(name: str, size: str = "embedded", weights: str | None = None, device: str = "cpu"):
+    """Construct the registered prior ``name`` (``size``: "embedded" or "paper"; ``weights``: a
+    checkpoint path or None for the embedded weights), moved to ``device`` and in eval mode."""
+    cls = get_prior_class(name)
+    adapter = cls(size=size, weights=weights, device=device)
+    return adapter.to(device).eval()

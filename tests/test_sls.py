@@ -162,7 +162,7 @@ def test_adaptive_weights_move_and_stay_positive():
 
 
 def test_weights_adapt_during_a_fit(source, cycle_motions, anny_body):
-    from benchmark.cli_run import make_adapter
+    from benchmark.registry import make_adapter
 
     ids = sorted(cycle_motions)[:1]
     spec = tiny_spec()
@@ -181,7 +181,7 @@ def test_weights_adapt_during_a_fit(source, cycle_motions, anny_body):
 # --------------------------------------------------------------------------- units
 @pytest.mark.parametrize("prior", ["no-prior", "vposer-slerp"])
 def test_run_unit_gives_finite_metrics(prior, source, cycle_motions, anny_body):
-    from benchmark.cli_run import make_adapter
+    from benchmark.registry import make_adapter
 
     ids = sorted(cycle_motions)[:1]
     spec = tiny_spec()
@@ -202,7 +202,7 @@ def test_run_unit_gives_finite_metrics(prior, source, cycle_motions, anny_body):
 def test_fit_is_deterministic(source, cycle_motions, anny_body):
     """Same seed, same cell, same sequences: the same observation and the same fitted variables
     (vposer-slerp starts from a random latent sample; the evaluation itself is exact)."""
-    from benchmark.cli_run import make_adapter
+    from benchmark.registry import make_adapter
 
     ids = sorted(cycle_motions)[:1]
     spec = tiny_spec()

@@ -123,7 +123,7 @@ def na_result(unit, reason: str) -> dict:
 
 def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="only-missing", size="embedded",
               weights=None, data=None, backend="local") -> dict:
-    from benchmark.cli_run import make_adapter
+    from benchmark.registry import make_adapter
     from benchmark.results import derive_table, plan_units
     from benchmark.runner import run_units
     from benchmark.writers import format_markdown, write_table
