@@ -51,7 +51,7 @@ def _cmd_data_build(args) -> int:
 def _cmd_perf(args) -> int:
     from benchmark.perf import run_perf
 
-    run_perf(device=args.device, quick=not args.full)
+    run_perf(device=args.device, quick=not args.full, out=args.out, parts=args.only)
     return 0
 
 
@@ -84,10 +84,14 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--rebuild", action="store_true")
     b.set_defaults(func=_cmd_data_build)
 
-    p = sub.add_parser("perf", help="speed of the Chamfer paths and the body skinning, measured side by side",
+    p = sub.add_parser("perf", help="speed of the hot paths (Chamfer, point-to-surface, evaluation, skinning, fit "
+                                    "steps) against the baselines a user would pick, measured side by side",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--full", action="store_true", help="larger sizes (slower)")
+    p.add_argument("--device", default="cpu", help="cpu, or cuda (adds the tiled-vs-torch.cdist comparison)")
+    p.add_argument("--full", action="store_true", help="more frames per measurement (slower)")
+    p.add_argument("--out", default="perf", help="folder for perf.md and perf.json")
+    p.add_argument("--only", nargs="+", default=None,
+                   choices=["chamfer", "surface", "evaluation", "skinning", "adam", "cuda"], help="run only these parts")
     p.set_defaults(func=_cmd_perf)
 
     from benchmark.cli_run import add_run_commands

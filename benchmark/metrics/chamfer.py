@@ -6,16 +6,24 @@ with Euclidean (not squared) distances, in metres. Point sets are padded batches
 and ``b`` (N, Q, 3) with optional valid-prefix lengths (N,); element ``n`` uses
 ``a[n, :a_lengths[n]]`` and ``b[n, :b_lengths[n]]`` and ignores the padding, whatever it holds.
 
-Nearest neighbours are found without autograd by one of three interchangeable backends, then the
+Nearest neighbours are found without autograd by one of four interchangeable backends, then the
 matched pairs are gathered and their distances computed in torch, so gradients flow to both
 point sets (:func:`chamfer_loss`):
 
-- ``"kdtree"``: scipy ``cKDTree`` per batch element (CPU; elements run in parallel threads, the
-  tree build and query release the GIL). Fast on a few CPU cores.
+- ``"kdtree"``: ``pykdtree`` per batch element, float64 (CPU; elements run in parallel threads,
+  the build and query release the GIL; pykdtree's own OpenMP threads default to one, see
+  :func:`_pykdtree`). Falls back to ``"scipy"`` where pykdtree is not installed.
+- ``"scipy"``: scipy ``cKDTree`` per batch element, float64: the reference implementation the
+  ``"kdtree"`` backend is tested against (the project's exact path before pykdtree).
 - ``"tiled"``: brute force in torch over tiles of query points, so that the distance tile never
   holds more than ``max_tile_elements`` numbers (bounded memory; meant for CUDA, works on CPU).
 - ``"naive"``: the full (N, P, Q) distance matrix with ``torch.cdist``; the reference for tests.
 - ``"auto"``: ``"kdtree"`` for CPU tensors, ``"tiled"`` otherwise.
+
+Both KD-tree backends are exact in float64: they return the same nearest neighbours (up to exact
+ties), so the loss, its gradient and every metric are unchanged by the choice.
+:class:`StaticChamfer` is :func:`chamfer_loss` against a point set that does not change between
+calls (the observed points of a fit): their trees are built once, not at every optimiser step.
 
 All backends return the same distances; where a query point has two equidistant nearest
 neighbours they may pick different ones (same value, different gradient). In float32 the tiled
@@ -35,7 +43,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-BACKENDS = ("auto", "kdtree", "tiled", "naive")
+BACKENDS = ("auto", "kdtree", "scipy", "tiled", "naive")
 REDUCTIONS = ("none", "mean", "sum")
 DEFAULT_MAX_TILE_ELEMENTS = 2**26
 DEFAULT_EPS = 1e-12  # m^2; floor under squared distances before sqrt in the loss (sqrt'(0) = inf)
@@ -43,6 +51,72 @@ DEFAULT_EPS = 1e-12  # m^2; floor under squared distances before sqrt in the los
 # Measured on body-sized clouds (10k-14k points, 2 cores): sliding-midpoint trees with 32-point
 # leaves built and queried fastest of the options tried (scipy defaults: leafsize 16, median splits).
 _KDTREE_OPTIONS = dict(leafsize=32, balanced_tree=False, compact_nodes=True)
+_PYKDTREE_LEAFSIZE = 16
+_PYKDTREE = None  # the pykdtree KDTree class once imported; False when not installed
+
+
+def _pykdtree():
+    """pykdtree's ``KDTree`` class, or None where pykdtree is not installed.
+
+    pykdtree parallelises each query with OpenMP (its own libgomp, read once at import). This
+    module already runs one batch element per thread, so unless the user set ``OMP_NUM_THREADS``
+    the import makes pykdtree single-threaded (on 2 cores, two threads each running a team of two
+    only oversubscribe). Results never depend on the thread count: every query is independent.
+    """
+    global _PYKDTREE
+    if _PYKDTREE is None:
+        had = "OMP_NUM_THREADS" in os.environ
+        if not had:
+            os.environ["OMP_NUM_THREADS"] = "1"
+        try:
+            from pykdtree.kdtree import KDTree
+            _PYKDTREE = KDTree
+        except ImportError:
+            _PYKDTREE = False
+        finally:
+            if not had:
+                del os.environ["OMP_NUM_THREADS"]
+    return _PYKDTREE or None
+
+
+def build_tree(points: np.ndarray):
+    """A KD-tree on (n, 3) float64 points: pykdtree where installed, else scipy cKDTree.
+    Query it with :func:`query_tree`."""
+    kd = _pykdtree()
+    if kd is None:
+        return cKDTree(points, **_KDTREE_OPTIONS)
+    return kd(points, leafsize=_PYKDTREE_LEAFSIZE)
+
+
+def query_tree(tree, queries: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(distances, int64 indices) of the ``k`` nearest tree points of each (m, 3) float64 query
+    ((m,) arrays for k = 1, else (m, k)), on one thread."""
+    if isinstance(tree, cKDTree):
+        d, i = tree.query(queries, k=k, workers=1)
+        return d, np.asarray(i, dtype=np.int64)
+    d, i = tree.query(queries, k=k)
+    return d, i.astype(np.int64)
+
+
+def morton_order(points: np.ndarray) -> np.ndarray:
+    """A permutation of (n, 3) points along a Z-order (Morton) curve, 10 bits per axis.
+
+    Queries issued in this order touch the same tree leaves one after another (cache locality);
+    any order gives the same answers."""
+    if points.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    lo = points.min(0)
+    extent = float((points.max(0) - lo).max()) or 1.0
+    q = np.clip((points - lo) * (1023.0 / extent), 0, 1023).astype(np.uint64)
+
+    def spread(x):
+        x = (x | (x << np.uint64(16))) & np.uint64(0x030000FF)
+        x = (x | (x << np.uint64(8))) & np.uint64(0x0300F00F)
+        x = (x | (x << np.uint64(4))) & np.uint64(0x030C30C3)
+        return (x | (x << np.uint64(2))) & np.uint64(0x09249249)
+
+    code = spread(q[:, 0]) | (spread(q[:, 1]) << np.uint64(1)) | (spread(q[:, 2]) << np.uint64(2))
+    return np.argsort(code, kind="stable")
 
 
 # ----------------------------------------------------------------------------- validation
@@ -126,7 +200,8 @@ def _clean_padding(x: torch.Tensor, lengths: torch.Tensor, name: str, caller: st
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
-    """``"auto"`` -> ``"kdtree"`` on CPU, ``"tiled"`` elsewhere; other names pass through."""
+    """``"auto"`` -> ``"kdtree"`` on CPU, ``"tiled"`` elsewhere; other names pass through
+    (``"kdtree"`` itself runs scipy's cKDTree where pykdtree is not installed)."""
     if backend == "auto":
         return "kdtree" if torch.device(device).type == "cpu" else "tiled"
     return backend
@@ -136,11 +211,44 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
 
 def cpu_threads() -> int:
-    """CPU cores this process may run on (threads for the per-element KD-tree work)."""
+    """Threads for the per-element KD-tree work: the CPU cores this process may run on, at most
+    torch's thread count (a process told to use one torch thread, e.g. one of several parallel
+    units, uses one thread here too)."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        cores = max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
+        cores = max(1, os.cpu_count() or 1)
+    return max(1, min(cores, torch.get_num_threads()))
+
+
+def _map_elements(fn, n_batch: int) -> list:
+    """[fn(n) for n in range(n_batch)], one element per thread when there are several threads."""
+    threads = min(cpu_threads(), n_batch)
+    if threads > 1:
+        with ThreadPoolExecutor(threads) as pool:
+            return list(pool.map(fn, range(n_batch)))
+    return [fn(n) for n in range(n_batch)]
+
+
+def _pykdtree_indices(query: torch.Tensor, ref: torch.Tensor, qlen: list[int], rlen: list[int],
+                      both: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """As :func:`_kdtree_indices` with pykdtree (float64, one thread per element)."""
+    q_np = query.detach().to("cpu", torch.float64).numpy()
+    r_np = ref.detach().to("cpu", torch.float64).numpy()
+    n_batch, p, q = q_np.shape[0], q_np.shape[1], r_np.shape[1]
+    idx_qr = np.full((n_batch, p), -1, dtype=np.int64)
+    idx_rq = np.full((n_batch, q), -1, dtype=np.int64) if both else None
+
+    def element(n: int) -> None:
+        pq, pr = q_np[n, : qlen[n]], r_np[n, : rlen[n]]
+        idx_qr[n, : qlen[n]] = query_tree(build_tree(pr), pq)[1]
+        if both:
+            idx_rq[n, : rlen[n]] = query_tree(build_tree(pq), pr)[1]
+
+    _map_elements(element, n_batch)
+    out_qr = torch.from_numpy(idx_qr).to(query.device)
+    out_rq = torch.from_numpy(idx_rq).to(query.device) if both else None
+    return out_qr, out_rq
 
 
 def _kdtree_indices(query: torch.Tensor, ref: torch.Tensor, qlen: list[int], rlen: list[int],
@@ -237,7 +345,9 @@ def _naive_indices(query: torch.Tensor, ref: torch.Tensor, qlen: torch.Tensor, r
 
 def _indices(query, ref, qlen, rlen, backend, max_tile_elements, both):
     """Dispatch to a backend; returns (idx query->ref, idx ref->query or None)."""
-    if backend == "kdtree":
+    if backend == "kdtree" and _pykdtree() is not None:
+        return _pykdtree_indices(query, ref, qlen.tolist(), rlen.tolist(), both)
+    if backend in ("kdtree", "scipy"):
         return _kdtree_indices(query, ref, qlen.tolist(), rlen.tolist(), both)
     fn = (lambda x, y, xl, yl: _tiled_indices(x, y, xl, yl, max_tile_elements)) if backend == "tiled" else _naive_indices
     idx_qr = fn(query, ref, qlen, rlen)
@@ -257,7 +367,7 @@ def nearest_neighbors(query: torch.Tensor, ref: torch.Tensor, query_lengths: tor
         query: (N, P, 3) padded query points, metres.
         ref: (N, Q, 3) padded reference points, metres.
         query_lengths, ref_lengths: (N,) long valid-prefix lengths, or None (all valid).
-        backend: "auto" | "kdtree" | "tiled" | "naive" (see module docstring).
+        backend: "auto" | "kdtree" | "scipy" | "tiled" | "naive" (see module docstring).
         max_tile_elements: largest distance tile of the tiled backend, in elements.
 
     Returns:
@@ -308,7 +418,7 @@ def chamfer_loss(a: torch.Tensor, b: torch.Tensor, a_lengths: torch.Tensor | Non
         a_lengths, b_lengths: (N,) long valid-prefix lengths (each in [1, P] / [1, Q]) or None.
         squared: use squared distances (m^2) instead of Euclidean ones (m). The reported metric
             never squares (PROTOCOL.md); an optimisation loss may.
-        backend: "auto" | "kdtree" | "tiled" | "naive" (see module docstring).
+        backend: "auto" | "kdtree" | "scipy" | "tiled" | "naive" (see module docstring).
         reduction: "none" -> (N,) one value per element; "mean" / "sum" -> scalar over elements.
         max_tile_elements: largest distance tile of the tiled backend, in elements.
         eps: floor (m^2) under squared distances before the square root, so coincident points give
@@ -351,7 +461,7 @@ def chamfer_distance(a: torch.Tensor, b: torch.Tensor, a_lengths: torch.Tensor |
         a: (N, P, 3) padded points, metres.
         b: (N, Q, 3) padded points, metres, same device and dtype.
         a_lengths, b_lengths: (N,) long valid-prefix lengths or None (all valid).
-        backend: "auto" | "kdtree" | "tiled" | "naive" (see module docstring).
+        backend: "auto" | "kdtree" | "scipy" | "tiled" | "naive" (see module docstring).
         max_tile_elements: largest distance tile of the tiled backend, in elements.
 
     Returns:
@@ -360,3 +470,85 @@ def chamfer_distance(a: torch.Tensor, b: torch.Tensor, a_lengths: torch.Tensor |
     with torch.no_grad():
         return _chamfer(a, b, a_lengths, b_lengths, False, backend, "none", max_tile_elements, 0.0,
                         "chamfer_distance")
+
+
+class StaticChamfer:
+    """:func:`chamfer_loss` ``(a, b)`` for a fixed ``b``, called many times with a changing ``a``.
+
+    An optimiser fits mesh vertices ``a`` to the same observed points ``b`` at every step: the
+    KD-trees on ``b`` (one per element) are built once here and shared by every call, and the
+    points of ``b`` are queried against ``a``'s tree in a cached Morton order (as are the rows of
+    ``a``, in the order of the first call's positions). Every call returns exactly what
+    ``chamfer_loss(a, b, a_lengths, b_lengths, squared=..., eps=..., reduction=...)`` returns with
+    the KD-tree backend (same nearest neighbours, same value and gradient); on a non-CPU device,
+    or where pykdtree is not installed, it simply calls :func:`chamfer_loss`.
+
+    Args:
+        b: (N, Q, 3) padded points, metres (no gradient flows to them).
+        b_lengths: (N,) long valid-prefix lengths or None (all valid).
+    """
+
+    def __init__(self, b: torch.Tensor, b_lengths: torch.Tensor | None = None):
+        caller = "StaticChamfer"
+        validate_points(b, "b", caller)
+        if b.shape[0] == 0:
+            raise ValueError(f"{caller}: empty batch (N = 0).")
+        self.bl = validate_lengths(b_lengths, "b_lengths", caller, b.shape[0], b.shape[1], b.device)
+        self.b, self.bmask = _clean_padding(b.detach(), self.bl, "b", caller)
+        self.b_lengths = b_lengths
+        self.cached = self.b.device.type == "cpu" and _pykdtree() is not None
+        self._a_order = None
+        if not self.cached:
+            return
+        b_np = self.b.to(torch.float64).numpy()
+        lengths = self.bl.tolist()
+        self._b_pts = [np.ascontiguousarray(b_np[n, : lengths[n]]) for n in range(b.shape[0])]
+        self._b_trees = _map_elements(lambda n: build_tree(self._b_pts[n]), b.shape[0])
+        self._b_order = [morton_order(pts) for pts in self._b_pts]
+        self._b_sorted = [np.ascontiguousarray(pts[o]) for pts, o in zip(self._b_pts, self._b_order)]
+
+    def indices(self, a: torch.Tensor, al: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """(idx a->b (N, P), idx b->a (N, Q)) long, -1 at padding, for clean (N, P, 3) ``a``."""
+        a_np = a.detach().to(torch.float64).numpy()
+        n_batch, p = a_np.shape[:2]
+        if self._a_order is None or len(self._a_order) != n_batch or any(
+                o.shape[0] != al[n] for n, o in enumerate(self._a_order)):
+            self._a_order = [morton_order(a_np[n, : al[n]]) for n in range(n_batch)]
+        idx_ab = np.full((n_batch, p), -1, dtype=np.int64)
+        idx_ba = np.full((n_batch, self.b.shape[1]), -1, dtype=np.int64)
+
+        def run(n: int) -> None:
+            pa = a_np[n, : al[n]]
+            oa, ob = self._a_order[n], self._b_order[n]
+            idx_ab[n, oa] = query_tree(self._b_trees[n], np.ascontiguousarray(pa[oa]))[1]
+            idx_ba[n, ob] = query_tree(build_tree(pa), self._b_sorted[n])[1]
+
+        _map_elements(run, n_batch)
+        return torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
+
+    def __call__(self, a: torch.Tensor, a_lengths: torch.Tensor | None = None, squared: bool = False,
+                 reduction: str = "none", eps: float = DEFAULT_EPS) -> torch.Tensor:
+        """The Chamfer loss of ``a`` (N, P, 3) against the fixed ``b``; see :func:`chamfer_loss`."""
+        if not self.cached:
+            return chamfer_loss(a, self.b, a_lengths, self.b_lengths, squared=squared, reduction=reduction, eps=eps)
+        caller = "StaticChamfer"
+        if reduction not in REDUCTIONS:
+            raise ValueError(f"{caller}: `reduction` must be one of {REDUCTIONS}; got {reduction!r}.")
+        if not eps >= 0:
+            raise ValueError(f"{caller}: `eps` must be >= 0; got {eps!r}.")
+        validate_points(a, "a", caller)
+        if a.shape[0] != self.b.shape[0] or a.device != self.b.device or a.dtype != self.b.dtype:
+            raise ValueError(
+                f"{caller}: `a` must have the batch size, device and dtype of the fixed points "
+                f"({self.b.shape[0]}, {self.b.device}, {self.b.dtype}); got {a.shape[0]}, {a.device}, {a.dtype}."
+            )
+        al = validate_lengths(a_lengths, "a_lengths", caller, a.shape[0], a.shape[1], a.device)
+        a, amask = _clean_padding(a, al, "a", caller)
+        idx_ab, idx_ba = self.indices(a, al.tolist())
+        value = 0.5 * (_directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
+                       + _directed_mean(self.b, a, idx_ba, self.bmask, self.bl, squared, eps))
+        if reduction == "mean":
+            return value.mean()
+        if reduction == "sum":
+            return value.sum()
+        return value

@@ -66,25 +66,37 @@ _AB2, _AC2, _ABAC, _DEGENERATE = 9, 10, 11, 12
 def _prepare_triangles(triangles: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) triangles -> (..., 13): corner a, edges ab and ac, |ab|^2, |ac|^2, ab.ac and a
     degenerate flag (1.0 when the height is below sqrt(machine eps) times the longest edge)."""
-    a, b, c = triangles[..., 0, :], triangles[..., 1, :], triangles[..., 2, :]
-    ab, ac, bc = b - a, c - a, c - b
-    ab2, ac2, abac = (ab * ab).sum(-1), (ac * ac).sum(-1), (ab * ac).sum(-1)
-    area2 = torch.linalg.cross(ab, ac).square().sum(-1)
-    scale = torch.maximum(torch.maximum(ab2, ac2), (bc * bc).sum(-1))
-    degenerate = (area2 <= torch.finfo(triangles.dtype).eps * scale.square()).to(triangles.dtype)
-    return torch.cat([a, ab, ac, ab2[..., None], ac2[..., None], abac[..., None], degenerate[..., None]], dim=-1)
+    corners = triangles.unbind(-2)
+    return torch.stack(prepare_triangles_soa(*(c.unbind(-1) for c in corners)), dim=-1)
+
+
+def prepare_triangles_soa(a, b, c) -> tuple:
+    """Structure-of-arrays :func:`_prepare_triangles`: corners ``a``, ``b``, ``c`` as (x, y, z)
+    tuples of equally shaped tensors -> the 13 prepared quantities as a tuple of tensors."""
+    ab, ac, bc = _sub(b, a), _sub(c, a), _sub(c, b)
+    ab2, ac2, abac = _dot(ab, ab), _dot(ac, ac), _dot(ab, ac)
+    cross = (ab[1] * ac[2] - ab[2] * ac[1], ab[2] * ac[0] - ab[0] * ac[2], ab[0] * ac[1] - ab[1] * ac[0])
+    area2 = _dot(cross, cross)
+    scale = torch.maximum(torch.maximum(ab2, ac2), _dot(bc, bc))
+    degenerate = (area2 <= torch.finfo(ab2.dtype).eps * scale.square()).to(ab2.dtype)
+    return (*a, *ab, *ac, ab2, ac2, abac, degenerate)
 
 
 def _distance_to_prepared(points: torch.Tensor, tri: torch.Tensor) -> torch.Tensor:
-    """Distance from points (..., 3) to prepared triangles (..., 13) (see _prepare_triangles).
+    """Distance from points (..., 3) to prepared triangles (..., 13) (see _prepare_triangles)."""
+    return distance_to_prepared_soa(points.unbind(-1), tri.unbind(-1))
 
-    Component-wise (structure of arrays): every op is elementwise on (...)-shaped tensors. With
+
+def distance_to_prepared_soa(p, tri) -> torch.Tensor:
+    """Distance from points to prepared triangles, structure of arrays: ``p`` an (x, y, z) tuple,
+    ``tri`` the 13 tensors of :func:`prepare_triangles_soa` (or a (13, ...) tensor), broadcast.
+
+    Component-wise: every op is elementwise on (...)-shaped tensors. With
     the per-triangle dot products precomputed, Ericson's six dot products reduce to two:
     d3 = d1 - |ab|^2, d4 = d2 - ab.ac, d5 = d1 - ab.ac, d6 = d2 - |ac|^2.
     """
-    p = points.unbind(-1)
-    a, ab, ac = tri[..., _A].unbind(-1), tri[..., _AB].unbind(-1), tri[..., _AC].unbind(-1)
-    ab2, ac2, abac = tri[..., _AB2], tri[..., _AC2], tri[..., _ABAC]
+    a, ab, ac = tuple(tri[0:3]), tuple(tri[3:6]), tuple(tri[6:9])
+    ab2, ac2, abac = tri[_AB2], tri[_AC2], tri[_ABAC]
     ap = _sub(p, a)
     d1, d2 = _dot(ab, ap), _dot(ac, ap)
     d3, d4 = d1 - ab2, d2 - abac
@@ -116,7 +128,7 @@ def _distance_to_prepared(points: torch.Tensor, tri: torch.Tensor) -> torch.Tens
 
     # (Nearly) zero-area triangles: the region tests above divide by the area; measure them as
     # their three edges (off by at most their height, below 1.5e-8 times their size in float64).
-    degenerate = tri[..., _DEGENERATE] > 0
+    degenerate = tri[_DEGENERATE] > 0
     if bool(degenerate.any()):
         b = tuple(ai + abi for ai, abi in zip(a, ab))
         c = tuple(ai + aci for ai, aci in zip(a, ac))

@@ -31,7 +31,7 @@ import roma
 import torch
 
 from benchmark.interpolate import lerp_frames, slerp_frames
-from benchmark.metrics.chamfer import chamfer_loss
+from benchmark.metrics.chamfer import StaticChamfer
 from benchmark.observations import PointCloudSequence
 from priors.base import Decoded, FitBatch, PriorAdapter
 
@@ -132,7 +132,10 @@ def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
         raise ValueError(f"prior {adapter.name!r}: decode returned trans {tuple(dec.trans.shape)}, expected {(B, T, 3)}")
 
 
-def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device) -> FitState:
+def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device,
+               data_term: StaticChamfer | None = None) -> FitState:
+    """The initial state of a fit (see module docstring). ``data_term``: the Chamfer against
+    ``batch``'s observed points (frames flattened), when the caller already built it."""
     B, n = batch.batch_size, batch.num_observed
     latents = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in adapter.init_latents(batch, generator).items()}
     bounded = body.name == "anny"
@@ -156,7 +159,7 @@ def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Ge
         state.heading = torch.zeros(B, 1, device=device, requires_grad=True)
     if adapter.encodes_translation:
         state.offset = trans0.mean(1).clone().requires_grad_(True)
-    _initial_heading(state, body, batch)
+    _initial_heading(state, body, batch, data_term)
     return state
 
 
@@ -164,7 +167,7 @@ HEADING_CANDIDATES = 8
 
 
 @torch.no_grad()
-def _initial_heading(state: FitState, body, batch: FitBatch) -> None:
+def _initial_heading(state: FitState, body, batch: FitBatch, data_term: StaticChamfer | None = None) -> None:
     """Coarse search of the initial facing direction, the same for every prior.
 
     The body is tried at HEADING_CANDIDATES yaw angles (about y, applied to the free root
@@ -175,6 +178,8 @@ def _initial_heading(state: FitState, body, batch: FitBatch) -> None:
     if state.root is None and state.heading is None:
         return
     B, n = batch.batch_size, batch.num_observed
+    if data_term is None:
+        data_term = StaticChamfer(batch.points.flatten(0, 1), batch.lengths.flatten(0, 1))
     subset = body.loss_vertex_indices(1000)
     rest = body.prepare(state.shape())
     base_root = None if state.root is None else state.root.detach().clone()
@@ -185,7 +190,7 @@ def _initial_heading(state: FitState, body, batch: FitBatch) -> None:
         _set_yaw(state, base_root, base_heading, torch.full((B,), yaw, device=batch.points.device))
         rot, trans = body_parameters(state, batch.timestamps, observed=True)
         verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices
-        d = chamfer_loss(verts.flatten(0, 1), batch.points.flatten(0, 1), b_lengths=batch.lengths.flatten(0, 1))
+        d = data_term(verts.flatten(0, 1))
         scores.append(d.view(B, n).mean(1))
     best = torch.stack(scores, 1).argmin(1).to(batch.points.dtype)  # (B,)
     _set_yaw(state, base_root, base_heading, 2 * math.pi * best / HEADING_CANDIDATES)
@@ -239,18 +244,22 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
 
     ``loss_vertices``: the data term uses a fixed farthest-point subset of that many mesh vertices
     (a profile size, for CPU speed); None uses every vertex. Evaluation always uses every vertex.
+
+    The data term is the exact Chamfer loss (:func:`benchmark.metrics.chamfer.chamfer_loss`, exact
+    nearest neighbours); the KD-trees of the observed points, which never move, are built once
+    per fit (:class:`~benchmark.metrics.chamfer.StaticChamfer`) and shared by the heading search
+    and every step.
     """
     subset = body.loss_vertex_indices(loss_vertices)
-    state = init_state(adapter, body, batch, generator, device)
     B, n = batch.batch_size, batch.num_observed
-    points = batch.points.flatten(0, 1)
-    lengths = batch.lengths.flatten(0, 1)
+    data_term = StaticChamfer(batch.points.flatten(0, 1), batch.lengths.flatten(0, 1))
+    state = init_state(adapter, body, batch, generator, device, data_term=data_term)
 
     def step_loss(step):
         rot, trans = body_parameters(state, batch.timestamps, observed=True)
         rest = body.prepare(state.shape())
         verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices  # (B, n, V, 3)
-        data = chamfer_loss(verts.flatten(0, 1), points, b_lengths=lengths).view(B, n).mean(1) * 1000.0
+        data = data_term(verts.flatten(0, 1)).view(B, n).mean(1) * 1000.0
         prior = adapter.prior_term(state.latents)
         return (data + lambda_prior * prior).sum(), lambda: {"data_mm": float(data.detach().mean()),
                                                               "prior": float(prior.detach().mean())}
