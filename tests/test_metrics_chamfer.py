@@ -8,7 +8,7 @@ import torch
 from benchmark.metrics import chamfer_distance, chamfer_loss, chamfer_perf, nearest_neighbors
 from benchmark.metrics.chamfer import _tile_shape
 
-BACKENDS = ("kdtree", "tiled", "naive", "auto")
+BACKENDS = ("kdtree", "scipy", "tiled", "naive", "auto")
 
 
 def reference_chamfer(a, b, a_lengths=None, b_lengths=None, squared=False):
@@ -226,3 +226,68 @@ def test_perf_report_structure_and_agreement():
     assert report["speedup_vs_naive"]["naive"] == 1.0
     assert report["loss_max_abs_diff_m"] < 1e-6
     assert report["frames_timed"] == {"kdtree": 2, "tiled": 1, "naive": 1}
+
+
+# ----------------------------------------------------------------------------- fast exact paths
+
+
+def test_pykdtree_backend_matches_scipy_reference_indices():
+    """The default KD-tree backend (pykdtree) finds the same neighbours as the scipy reference."""
+    pytest.importorskip("pykdtree")
+    a, b, al, bl = random_padded(11, n=4, p=300, q=500, garbage=0.0)
+    for q, r, ql, rl in ((a, b, al, bl), (b, a, bl, al)):
+        d1, i1 = nearest_neighbors(q, r, ql, rl, backend="kdtree")
+        d2, i2 = nearest_neighbors(q, r, ql, rl, backend="scipy")
+        assert torch.equal(i1, i2)
+        assert torch.equal(torch.nan_to_num(d1), torch.nan_to_num(d2))
+
+
+@pytest.mark.parametrize("squared", [False, True])
+@pytest.mark.parametrize("reduction", ["none", "sum"])
+def test_static_chamfer_equals_chamfer_loss(squared, reduction):
+    """StaticChamfer (trees of b built once) returns chamfer_loss's value and gradient, bit for bit,
+    at every call while a moves, with padding (NaN in the padding never leaks)."""
+    from benchmark.metrics.chamfer import StaticChamfer
+
+    a, b, al, bl = random_padded(5, n=4, p=120, q=90, dtype=torch.float32)
+    static = StaticChamfer(b, bl)
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(3):
+        a = torch.where(torch.isnan(a), a, a + 0.05 * torch.randn(a.shape, generator=gen))
+        x, y = a.clone().requires_grad_(True), a.clone().requires_grad_(True)
+        got = static(x, al, squared=squared, reduction=reduction)
+        ref = chamfer_loss(y, b, al, bl, squared=squared, reduction=reduction, backend="scipy")
+        assert torch.equal(got, ref)
+        got.sum().backward()
+        ref.sum().backward()
+        assert torch.equal(x.grad, y.grad)
+        assert torch.isfinite(x.grad).all()
+
+
+def test_static_chamfer_errors():
+    from benchmark.metrics.chamfer import StaticChamfer
+
+    b = torch.randn(2, 10, 3)
+    with pytest.raises(ValueError, match="shape"):
+        StaticChamfer(b[0])
+    static = StaticChamfer(b)
+    with pytest.raises(ValueError, match="batch size"):
+        static(torch.randn(3, 5, 3))
+    with pytest.raises(ValueError, match="reduction"):
+        static(torch.randn(2, 5, 3), reduction="max")
+
+
+def test_pykdtree_results_do_not_depend_on_openmp_threads():
+    """pykdtree's OpenMP thread count (OMP_NUM_THREADS, read at import) never changes a neighbour."""
+    pytest.importorskip("pykdtree")
+    import subprocess
+    import sys
+
+    code = ("import numpy as np\nfrom pykdtree.kdtree import KDTree\nrng = np.random.default_rng(0)\n"
+            "p, q = rng.standard_normal((5000, 3)), rng.standard_normal((7000, 3))\n"
+            "d, i = KDTree(p).query(q)\nprint(int(i.astype(np.int64).sum()), repr(float(d.sum())))\n")
+    outs = set()
+    for threads in ("1", "2"):
+        env = {**__import__("os").environ, "OMP_NUM_THREADS": threads}
+        outs.add(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout)
+    assert len(outs) == 1

@@ -1,0 +1,57 @@
+"""The table1 evaluation's fast path against its reference implementation (same numbers)."""
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+
+def _unit(body, frames=3, seed=0):
+    """Output meshes near the ground truth and one far off (1.5 m away, 40 degrees turned: the
+    8-nearest-vertex candidates are then an upper bound, the case where pruning matters most)."""
+    import roma
+
+    from benchmark.observations import sample_surface
+    from benchmark.protocols.completion_unit import UnitData
+
+    g = torch.Generator().manual_seed(seed)
+    rest = body.prepare(body.default_shape(1))
+    rot = roma.rotvec_to_rotmat(torch.randn(1, frames, 22, 3, generator=g) * 0.2)
+    rot_out = roma.rotvec_to_rotmat(roma.rotmat_to_rotvec(rot) + torch.randn(1, frames, 22, 3, generator=g) * 0.05)
+    rot_out[0, -1, 0] = roma.rotvec_to_rotmat(torch.tensor([0.0, 0.7, 0.0]))
+    trans_out = torch.zeros(1, frames, 3)
+    trans_out[0, -1] = torch.tensor([1.5, 0.1, -0.2])
+    with torch.no_grad():
+        gt = body.skin(rest, rot, torch.zeros(1, frames, 3))
+        out = body.skin(rest, rot_out, trans_out)
+        scan = sample_surface(gt.vertices, body.faces, 3000, g)
+    data = UnitData(scans=None, out_t=torch.zeros(1, frames), gt_points=scan, gt_joints=gt.joints)
+    return SimpleNamespace(vertices=out.vertices, joints=out.joints), data
+
+
+@pytest.mark.parametrize("surface_points", [500, None])
+def test_evaluate_matches_reference(anny_body, surface_points):
+    from benchmark.protocols.completion_unit import evaluate, evaluate_reference
+
+    output, data = _unit(anny_body)
+    ref = evaluate_reference(anny_body, output, data, "cpu", surface_points=surface_points)
+    for _ in range(2):  # the second call uses the cached scan trees
+        got = evaluate(anny_body, output, data, "cpu", surface_points=surface_points)
+        assert [r["frames"] for r in got] == [r["frames"] for r in ref]
+        for x, y in zip(got, ref):
+            for metric, value in y["sums"].items():
+                assert x["sums"][metric] == pytest.approx(value, abs=1e-6 * y["frames"]), metric  # 1e-3 mm per frame
+    assert len(data.cache) == 1
+
+
+def test_scan_trees_follow_the_scans(anny_body):
+    """A cache entry belongs to the scans it was built on: new scans get new trees."""
+    from benchmark.protocols.completion_unit import evaluate, evaluate_reference
+
+    output, data = _unit(anny_body, frames=2, seed=1)
+    evaluate(anny_body, output, data, "cpu", surface_points=300)
+    data.gt_points = data.gt_points + 0.01
+    got = evaluate(anny_body, output, data, "cpu", surface_points=300)
+    ref = evaluate_reference(anny_body, output, data, "cpu", surface_points=300)
+    assert got[0]["sums"]["chamfer_m"] == pytest.approx(ref[0]["sums"]["chamfer_m"], abs=1e-9)
+    assert len(data.cache) == 1
