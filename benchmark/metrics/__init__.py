@@ -1,9 +1,11 @@
 """Metrics: pure functions of batched tensors, metres in and out (PROTOCOL.md).
 
-- :mod:`.chamfer`: Chamfer distance / differentiable Chamfer loss (kdtree, tiled, naive backends).
+- :mod:`.chamfer`: Chamfer distance / differentiable Chamfer loss (kdtree = pykdtree, scipy,
+  tiled, naive backends; :class:`~.chamfer.StaticChamfer` for a fit against fixed points).
 - :mod:`.surface`: point-to-surface Chamfer (exact point-to-triangle distances).
 - :mod:`.pose`: MPJPE, PA-MPJPE, V2V, mean acceleration, acceleration error, frame reductions.
-- :mod:`.perf`: side-by-side timing of the Chamfer backends (``python -m benchmark perf``).
+- :mod:`.perf`: side-by-side timing of the Chamfer backends (part of ``python -m benchmark perf``,
+  :mod:`benchmark.perf`).
 """
 
 from benchmark.metrics.chamfer import chamfer_distance, chamfer_loss, nearest_neighbors
