@@ -193,8 +193,8 @@ def _scan_to_surface_frame(points: torch.Tensor, vertices: torch.Tensor, faces_t
     distance to the face's plane and ``|p - c_f| - r_f`` (c_f the face's centroid, r_f its
     largest centroid-to-corner distance: every point of the face lies within r_f of c_f), are both
     at most the point's vertex distance plus 1e-9 m: a face beyond either bound can never lower
-    the minimum, so skipping it changes no bit of the result. (A face met through several of
-    the k vertices is evaluated more than once: cheaper than deduplicating.)
+    the minimum, so skipping it changes no bit of the result. A face met through several of the
+    k vertices is evaluated once.
     """
     from benchmark.metrics.surface import distance_to_prepared_soa, prepare_triangles_soa
 
@@ -218,8 +218,11 @@ def _scan_to_surface_frame(points: torch.Tensor, vertices: torch.Tensor, faces_t
     offset = (normal * np.stack(c)).sum(0)
     bounds = np.stack([*c, np.sqrt(r2), *normal, offset])  # (8, F)
 
-    cand = np.take(vertex_faces, knn, axis=0).reshape(n_points, -1)  # (P, k * width)
-    pid, col = np.nonzero(cand < F)
+    cand = np.sort(np.take(vertex_faces, knn, axis=0).reshape(n_points, -1), axis=1)  # (P, k * width)
+    first = np.empty(cand.shape, dtype=bool)
+    first[:, 0] = True
+    np.not_equal(cand[:, 1:], cand[:, :-1], out=first[:, 1:])
+    pid, col = np.nonzero(first & (cand < F))  # each (point, face) pair once
     fid = cand[pid, col]
     p64 = points.double().numpy().T  # (3, P)
     pp = np.take(p64, pid, axis=1)  # (3, n)
