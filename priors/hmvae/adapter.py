@@ -45,6 +45,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from benchmark.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
 from benchmark.interpolate import slerp_frames
 from benchmark.loaders.amass import Z_UP_TO_Y_UP
 from benchmark.skeleton import NUM_JOINTS
@@ -56,7 +57,7 @@ from priors.hmvae.checkpoint import (
     load_project_vae,
     resolve_paper_weights,
 )
-from priors.hmvae.model import PAPER_CONFIG, HMVAE, matrix_to_sixd_columns, parameter_summary, sixd_columns_to_matrix
+from priors.hmvae.model import PAPER_CONFIG, HMVAE, parameter_summary
 from priors.hmvae.skeleton import NUM_JOINTS24
 from priors.hmvae.trajectory import PAPER_TRAJECTORY_CONFIG, TrajectoryModel, integrate_velocity
 from priors.training import WEIGHTS_DIR
