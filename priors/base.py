@@ -132,6 +132,7 @@ class PriorAdapter(torch.nn.Module):
     has_encoder: bool = False
     sixd_layout: str | None = None  # "interleaved" (VPoser/Xu) or "columns" (HM-VAE), if it uses 6D
     constant_latents: tuple[str, ...] = ()  # latents entries the decoder reads but never optimises (no gradient)
+    frozen_network: str | None = None  # attribute holding the trained network, kept frozen and in eval mode
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__()
@@ -173,6 +174,25 @@ class PriorAdapter(torch.nn.Module):
         dynamic batch dimension (dim 0 of every input and output).
         """
         raise NotImplementedError(f"prior {self.name!r} does not export its decoder")
+
+    # -- for adapters around a trained network ---------------------------------------------
+    def freeze_network(self, device: str | torch.device | None = None) -> None:
+        """Freeze the network named by ``frozen_network``: no gradients on its parameters, the
+        adapter moved to ``device`` (when given), the network in eval mode (no dropout, BatchNorm
+        running statistics). The protocols optimise latents only."""
+        net = getattr(self, self.frozen_network)
+        for p in net.parameters():
+            p.requires_grad_(False)
+        if device is not None:
+            self.to(device)
+        net.eval()
+
+    def train(self, mode: bool = True):
+        """``nn.Module.train``; a ``frozen_network`` stays in eval mode whatever ``mode`` is."""
+        super().train(mode)
+        if self.frozen_network is not None:
+            getattr(self, self.frozen_network).eval()
+        return self
 
     def describe(self) -> str:
         n = sum(p.numel() for p in self.parameters())

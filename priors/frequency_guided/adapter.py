@@ -19,6 +19,7 @@ from priors.frequency_guided.checkpoint import (
     load_paper_weights,
     load_project_checkpoint,
 )
+from priors.training import embedded_out_dir
 
 
 
@@ -47,6 +48,7 @@ class FrequencyGuidedPrior(PriorAdapter):
     shape_conditioned = False
     has_encoder = True
     sixd_layout = "interleaved"
+    frozen_network = "network"
 
     def __init__(self, size: str = "embedded", weights=None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=None if weights is None else str(weights), device=device)
@@ -68,21 +70,12 @@ class FrequencyGuidedPrior(PriorAdapter):
             self.weights_path = str(path)
         else:
             raise ValueError(f"frequency-guided: unknown size {size!r}; expected 'embedded' or 'paper'")
-        for p in self.network.parameters():
-            p.requires_grad_(False)
-        self.to(device)
-        self.network.eval()
+        self.freeze_network(device)
 
     @classmethod
     def paper_network(cls) -> nn.Module:
         """The paper-size network (motion prior + VPoser v1.0) with random weights."""
         return FrequencyGuidedNetwork(PAPER_CONFIG)
-
-    def train(self, mode: bool = True):
-        """Frozen prior: the network stays in eval mode (no dropout, BatchNorm running statistics)."""
-        super().train(mode)
-        self.network.eval()
-        return self
 
     @property
     def latent_dim(self) -> int:
@@ -167,9 +160,6 @@ class FrequencyGuidedPrior(PriorAdapter):
         """``python -m benchmark train frequency-guided``: retrain the embedded weights (train_frequency_guided)."""
         from priors.frequency_guided.train import train_frequency_guided
 
-        out = Path(out_dir) if out_dir is not None else DEFAULT_WEIGHTS.parent
-        target = out / DEFAULT_WEIGHTS.name
-        if target.exists() and not overwrite:
-            raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
+        out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
         _, record = train_frequency_guided(out, seed=seed, **({"steps": int(steps)} if steps else {}))
         return record

@@ -15,10 +15,10 @@ import torch
 from torch import nn
 
 from benchmark.skeleton import NUM_JOINTS
+from priors import training
 from priors.vposer.model import NUM_BODY_JOINTS, VPoserV1
 from priors.frequency_guided.model import EMBEDDED_CONFIG, FPS, FrequencyGuidedNetwork, pseudo_vertices
 from priors.frequency_guided.checkpoint import DEFAULT_WEIGHTS
-from priors.frequency_guided.adapter import FrequencyGuidedPrior
 
 log = logging.getLogger(__name__)
 
@@ -147,8 +147,6 @@ def train_frequency_guided(
     the frames of the explicit windows. rest_joints: the fixed (22, 3) skeleton of the losses and joint
     features (default ``priors.training.fixed_rest_skeleton()``); it is saved with the weights.
     """
-    from priors import training
-
     cfg = {**EMBEDDED_CONFIG, **(config or {})}
     Fr = int(cfg["frames"])
     data_info: dict = {}
@@ -206,7 +204,7 @@ def train_frequency_guided(
 
     counts = net.parameter_counts()
     record = {
-        "prior": FrequencyGuidedPrior.name,
+        "prior": "frequency-guided",
         "network": "Xu et al. 2021 MotionPrior + VPoser v1.0 (priors/frequency_guided/model.py, priors/vposer/model.py)",
         "config": net.config,
         "parameters": counts,
@@ -251,22 +249,12 @@ def train_frequency_guided(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.frequency_guided.train --out priors/weights``: train the embedded weights."""
-    import argparse
-
-    ap = argparse.ArgumentParser(description="Train the embedded frequency-guided prior on the synthetic training split.")
-    ap.add_argument("--out", default=str(DEFAULT_WEIGHTS.parent), help="output folder (default: %(default)s)")
-    ap.add_argument("--steps", type=int, default=DEFAULT_STEPS, help="motion-prior steps (default: %(default)s)")
+    ap = training.recipe_parser("Train the embedded frequency-guided prior on the synthetic training split.",
+                                DEFAULT_WEIGHTS, DEFAULT_STEPS)
     ap.add_argument("--vposer-steps", type=int, default=DEFAULT_VPOSER_STEPS, help="VPoser v1 steps (default: %(default)s)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--force", action="store_true", help="overwrite existing weights")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    target = Path(args.out) / DEFAULT_WEIGHTS.name
-    if target.exists() and not args.force:
-        raise SystemExit(f"{target} exists: pass --force to overwrite it")
+    args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
     _, rec = train_frequency_guided(args.out, steps=args.steps, seed=args.seed, vposer_steps=args.vposer_steps)
     print({k: rec[k] for k in ("train_wall_s", "final_train", "final_val", "checkpoint_bytes")})
-
 
 
 if __name__ == "__main__":

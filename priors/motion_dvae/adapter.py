@@ -31,6 +31,7 @@ from priors.motion_dvae.checkpoint import (
     load_state_strict,
     read_project_checkpoint,
 )
+from priors.training import embedded_out_dir
 
 
 
@@ -73,6 +74,7 @@ class MotionDVAEPrior(PriorAdapter):
     shape_conditioned = False
     has_encoder = True
     sixd_layout = None
+    frozen_network = "net"
     prior_term_kind = "learned"  # or "l2"
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
@@ -93,8 +95,7 @@ class MotionDVAEPrior(PriorAdapter):
             self.weights_path = str(path)
         else:
             raise ValueError(f"motion-dvae: unknown size {size!r}; expected 'embedded' or 'paper'")
-        self._freeze()
-        self.to(device)
+        self.freeze_network(device)
 
     @classmethod
     def from_network(cls, net: MotionDVAE, device="cpu") -> "MotionDVAEPrior":
@@ -102,13 +103,8 @@ class MotionDVAEPrior(PriorAdapter):
         self = cls.__new__(cls)
         PriorAdapter.__init__(self, size="embedded", weights=None)
         self.net = net
-        self._freeze()
-        return self.to(device)
-
-    def _freeze(self):
-        for p in self.net.parameters():
-            p.requires_grad_(False)
-        self.net.eval()
+        self.freeze_network(device)
+        return self
 
     @property
     def device(self) -> torch.device:
@@ -117,11 +113,6 @@ class MotionDVAEPrior(PriorAdapter):
     @property
     def z_dim(self) -> int:
         return self.net.z_dim
-
-    def train(self, mode: bool = True):
-        super().train(mode)
-        self.net.eval()
-        return self
 
     @classmethod
     def paper_network(cls) -> MotionDVAE:
@@ -280,10 +271,7 @@ class MotionDVAEPrior(PriorAdapter):
         ``steps`` is the DVAE phase's step count; the denoising phase gets 2/5 as many."""
         from priors.motion_dvae.train import train_motion_dvae
 
-        out = Path(out_dir) if out_dir is not None else DEFAULT_WEIGHTS.parent
-        target = out / DEFAULT_WEIGHTS.name
-        if target.exists() and not overwrite:
-            raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
+        out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
         kw = {}
         if steps:
             kw = {"steps": int(steps), "denoise_steps": max(1, 2 * int(steps) // 5)}

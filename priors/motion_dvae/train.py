@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 
 from benchmark.skeleton import NUM_JOINTS
+from priors import training
 from priors.motion_dvae.model import (
     DENOISE_SIGMA_RANGE,
     EMBEDDED_CONFIG,
@@ -31,7 +32,6 @@ from priors.motion_dvae.model import (
     state_to_motion,
 )
 from priors.motion_dvae.checkpoint import DEFAULT_WEIGHTS
-from priors.motion_dvae.adapter import MotionDVAEPrior
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +83,6 @@ def train_motion_dvae(
     (HuMoR settings) uses Adamax lr 1e-4 for 200 epochs, too slow for the embedded CPU budget.
     ``out_dir=None`` writes nothing. Returns (model in eval mode, record).
     """
-    from priors import training
-
     cfg = dict(EMBEDDED_CONFIG, **(config or {}))
     data_info: dict = {}
     if windows is None:
@@ -183,7 +181,7 @@ def train_motion_dvae(
     model.eval()
 
     record = {
-        "prior": MotionDVAEPrior.name,
+        "prior": "motion-dvae",
         "network": "Motion-DVAE (priors/motion_dvae/model.py MotionDVAE), embedded size",
         "config": model.config,
         "parameters": model.parameter_counts(),
@@ -222,18 +220,11 @@ def train_motion_dvae(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.motion_dvae.train --out priors/weights``: train the embedded weights."""
-    import argparse
-
-    ap = argparse.ArgumentParser(description="Train the embedded Motion-DVAE on the synthetic training split.")
-    ap.add_argument("--out", default=str(DEFAULT_WEIGHTS.parent))
-    ap.add_argument("--steps", type=int, default=1800)
+    ap = training.recipe_parser("Train the embedded Motion-DVAE on the synthetic training split.", DEFAULT_WEIGHTS, 1800)
     ap.add_argument("--denoise-steps", type=int, default=720)
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
     _, rec = train_motion_dvae(args.out, steps=args.steps, denoise_steps=args.denoise_steps, seed=args.seed)
     print({k: rec[k] for k in ("train_wall_s", "checkpoint_bytes")})
-
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ from priors.sequential_primitives.checkpoint import (
     network_from_checkpoint,
     read_checkpoint,
 )
+from priors.training import embedded_out_dir
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +68,7 @@ class SequentialPrimitivesPrior(PriorAdapter):
     shape_conditioned = True
     has_encoder = True
     sixd_layout = "columns"
+    frozen_network = "net"
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=weights, device=device)
@@ -98,10 +100,7 @@ class SequentialPrimitivesPrior(PriorAdapter):
         else:
             raise ValueError(f"sequential-primitives: unknown size {size!r}; expected 'embedded' or 'paper'")
         self.weights_path = str(path)
-        for p in self.net.parameters():
-            p.requires_grad_(False)
-        self.to(device)
-        self.net.eval()
+        self.freeze_network(device)
         self._z_init: torch.Tensor | None = None
         self._window_s: float = DEFAULT_WINDOW_S
         self._warned_shape = False
@@ -110,11 +109,6 @@ class SequentialPrimitivesPrior(PriorAdapter):
     @property
     def device(self) -> torch.device:
         return next(self.net.parameters()).device
-
-    def train(self, mode: bool = True):
-        super().train(mode)
-        self.net.eval()
-        return self
 
     @classmethod
     def paper_network(cls) -> nn.Module:
@@ -233,10 +227,7 @@ class SequentialPrimitivesPrior(PriorAdapter):
         encoder gets steps * DEFAULT_POINT_STEPS / DEFAULT_STEPS."""
         from priors.sequential_primitives.train import DEFAULT_POINT_STEPS, DEFAULT_STEPS, train_sequential_primitives
 
-        out = Path(out_dir) if out_dir is not None else DEFAULT_WEIGHTS.parent
-        target = out / DEFAULT_WEIGHTS.name
-        if target.exists() and not overwrite:
-            raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
+        out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
         kw = {}
         if steps:
             kw = {"steps": int(steps), "point_steps": max(1, round(int(steps) * DEFAULT_POINT_STEPS / DEFAULT_STEPS))}

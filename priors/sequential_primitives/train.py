@@ -19,6 +19,7 @@ from benchmark.body.lbs import forward_kinematics
 from benchmark.frames import yaw_matrix
 from benchmark.rotations import matrix_to_sixd, slerp_matrices
 from benchmark.skeleton import NUM_JOINTS
+from priors import training
 from priors.sequential_primitives.model import (
     EMBEDDED_CONFIG,
     MODEL_JOINTS,
@@ -29,7 +30,6 @@ from priors.sequential_primitives.model import (
     insert_feet,
 )
 from priors.sequential_primitives.checkpoint import DEFAULT_WEIGHTS
-from priors.sequential_primitives.adapter import SequentialPrimitivesPrior
 
 log = logging.getLogger(__name__)
 
@@ -282,8 +282,6 @@ def train_sequential_primitives(
     (22, 3): the FK skeleton of the 3D term (default :func:`priors.training.fixed_rest_skeleton`).
     Returns (network in eval mode, training record).
     """
-    from priors import training
-
     cfg = dict(EMBEDDED_CONFIG if config is None else config)
     S = int(cfg["shape_dim"])
     data_info: dict = {}
@@ -395,7 +393,7 @@ def train_sequential_primitives(
     n_params = {k: sum(p.numel() for p in getattr(net, k).parameters())
                 for k in ("motion_encoder", "decoder", "point_encoder")}
     record = {
-        "prior": SequentialPrimitivesPrior.name,
+        "prior": "sequential-primitives",
         "network": "priors/sequential_primitives/model.py SequentialPrimitives",
         "config": net.config,
         "parameters": sum(n_params.values()),
@@ -430,22 +428,12 @@ def train_sequential_primitives(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.sequential_primitives.train --out priors/weights``: train the embedded weights."""
-    import argparse
-
-    ap = argparse.ArgumentParser(description="Train the embedded sequential-primitives prior on the synthetic split.")
-    ap.add_argument("--out", default=str(DEFAULT_WEIGHTS.parent))
-    ap.add_argument("--steps", type=int, default=DEFAULT_STEPS)
+    ap = training.recipe_parser("Train the embedded sequential-primitives prior on the synthetic split.",
+                                DEFAULT_WEIGHTS, DEFAULT_STEPS)
     ap.add_argument("--point-steps", type=int, default=DEFAULT_POINT_STEPS)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--force", action="store_true", help="overwrite existing weights")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    target = Path(args.out) / DEFAULT_WEIGHTS.name
-    if target.exists() and not args.force:
-        raise SystemExit(f"{target} exists: pass --force to overwrite it")
+    args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
     _, rec = train_sequential_primitives(args.out, steps=args.steps, point_steps=args.point_steps, seed=args.seed)
     print({k: rec[k] for k in ("train_wall_s", "final_train", "final_val", "point_final_val", "checkpoint_bytes")})
-
 
 
 if __name__ == "__main__":

@@ -14,7 +14,8 @@ from priors.structured_latent.model import PAPER_CONFIG, StructuredLatentCVAE
 from priors.structured_latent.representation import (
     ANCHORS, JOINTS, SIXD_LAYOUT, canonical_frame, canonicalise, motion_to_chi, resample_anchors,
 )
-from priors.structured_latent.checkpoint import CHECKPOINT_NAME, DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN, TRAIN_COMMAND, load_checkpoint
+from priors.structured_latent.checkpoint import DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN, TRAIN_COMMAND, load_checkpoint
+from priors.training import embedded_out_dir
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +56,7 @@ class StructuredLatentPrior(PriorAdapter):
     shape_conditioned = True
     has_encoder = True
     sixd_layout = SIXD_LAYOUT
+    frozen_network = "net"
     anchors = ANCHORS
     constant_latents = ("window_s",)  # latents decode reads but never differentiates (zero gradient)
     init = "sample"  # "sample": z ~ N(0, I); "zero": z = 0 (the prior mean)
@@ -73,10 +75,7 @@ class StructuredLatentPrior(PriorAdapter):
             )
         self.net, self.checkpoint_config = load_checkpoint(path)
         self.weights_path = str(path)
-        for p in self.net.parameters():
-            p.requires_grad_(False)
-        self.to(device)
-        self.net.eval()
+        self.freeze_network(device)
 
     @classmethod
     def from_network(cls, net: StructuredLatentCVAE) -> "StructuredLatentPrior":
@@ -84,9 +83,7 @@ class StructuredLatentPrior(PriorAdapter):
         self = cls.__new__(cls)
         PriorAdapter.__init__(self, size="embedded", weights=None)
         self.net, self.checkpoint_config = net, {"network": net.config, "normalisation": net.normalisation()}
-        for p in self.net.parameters():
-            p.requires_grad_(False)
-        self.net.eval()
+        self.freeze_network()
         return self
 
     # -- properties ---------------------------------------------------------------------------
@@ -101,12 +98,6 @@ class StructuredLatentPrior(PriorAdapter):
     @property
     def device(self) -> torch.device:
         return next(self.net.parameters()).device
-
-    def train(self, mode: bool = True):
-        """The prior is frozen: its network stays in eval mode."""
-        super().train(mode)
-        self.net.eval()
-        return self
 
     # -- latents ------------------------------------------------------------------------------
     def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -212,10 +203,7 @@ class StructuredLatentPrior(PriorAdapter):
         """``python -m benchmark train structured-latent``: retrain the embedded weights."""
         from priors.structured_latent.train import train_structured_latent
 
-        out = Path(out_dir) if out_dir is not None else DEFAULT_WEIGHTS.parent
-        target = out / CHECKPOINT_NAME
-        if target.exists() and not overwrite:
-            raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
+        out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
         _, record = train_structured_latent(out, steps=steps, seed=seed)
         return record
 

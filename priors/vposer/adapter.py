@@ -12,6 +12,7 @@ from benchmark.skeleton import NUM_JOINTS
 from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
 from priors.vposer.model import NUM_BODY_JOINTS, PAPER_CONFIG, VPoser
 from priors.vposer.checkpoint import DEFAULT_WEIGHTS, WHERE_TO_GET, load_vposer_checkpoint, read_project_config
+from priors.training import embedded_out_dir
 
 
 
@@ -33,6 +34,7 @@ class VPoserSlerp(PriorAdapter):
     joints = tuple(range(1, NUM_JOINTS))
     sixd_layout = "interleaved"
     has_encoder = True
+    frozen_network = "vposer"
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=weights, device=device)
@@ -54,10 +56,7 @@ class VPoserSlerp(PriorAdapter):
         else:
             raise ValueError(f"vposer-slerp: unknown size {size!r}; expected 'embedded' or 'paper'")
         self.weights_path = str(self.checkpoint.file)
-        for p in self.vposer.parameters():
-            p.requires_grad_(False)
-        self.to(device)
-        self.vposer.eval()
+        self.freeze_network(device)
 
     @property
     def latent_dim(self) -> int:
@@ -66,12 +65,6 @@ class VPoserSlerp(PriorAdapter):
     @property
     def device(self) -> torch.device:
         return next(self.vposer.parameters()).device
-
-    def train(self, mode: bool = True):
-        """The prior is frozen: its network stays in eval mode (no dropout, BatchNorm running stats)."""
-        super().train(mode)
-        self.vposer.eval()
-        return self
 
     def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """``{"z": (B, n_observed, L)}`` drawn from N(0, I) with ``generator`` (on its device)."""
@@ -99,10 +92,7 @@ class VPoserSlerp(PriorAdapter):
         """``python -m benchmark train vposer-slerp``: retrain the embedded weights (see train_vposer)."""
         from priors.vposer.train import train_vposer
 
-        out = Path(out_dir) if out_dir is not None else DEFAULT_WEIGHTS.parent
-        target = out / DEFAULT_WEIGHTS.name
-        if target.exists() and not overwrite:
-            raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
+        out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
         _, record = train_vposer(out, seed=seed, **({"steps": int(steps)} if steps else {}))
         return record
 

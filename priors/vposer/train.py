@@ -13,9 +13,9 @@ import torch
 
 from benchmark.body.lbs import forward_kinematics
 from benchmark.skeleton import NUM_JOINTS
+from priors import training
 from priors.vposer.model import EMBEDDED_CONFIG, NUM_BODY_JOINTS, VPoser
 from priors.vposer.checkpoint import DEFAULT_WEIGHTS
-from priors.vposer.adapter import VPoserSlerp
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +65,6 @@ def train_vposer(
     frame of the synthetic "train" split (at most ``max_frames``) and of the "val" split (if it
     builds). ``out_dir=None`` writes nothing (tests). Returns (trained model in eval mode, record).
     """
-    from priors import training
-
     data_info: dict = {}
     if poses is None:
         motions = training.load_split_motions("train")
@@ -111,7 +109,7 @@ def train_vposer(
     )
     model.eval()
     record = {
-        "prior": VPoserSlerp.name,
+        "prior": "vposer-slerp",
         "network": "VPoser V02_05 architecture (priors/vposer/model.py VPoser)",
         "config": model.config,
         "parameters": sum(p.numel() for p in model.parameters()),
@@ -135,18 +133,12 @@ def train_vposer(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.vposer.train --out priors/weights --steps 15000 --seed 0``: train the embedded weights."""
-    import argparse
-
-    ap = argparse.ArgumentParser(description="Train the embedded VPoser on the synthetic training split.")
-    ap.add_argument("--out", default=str(DEFAULT_WEIGHTS.parent), help="output folder (default: %(default)s)")
-    ap.add_argument("--steps", type=int, default=15000)
-    ap.add_argument("--seed", type=int, default=0)
+    ap = training.recipe_parser("Train the embedded VPoser on the synthetic training split.", DEFAULT_WEIGHTS, 15000)
     ap.add_argument("--hidden", type=int, default=EMBEDDED_CONFIG["hidden"])
     ap.add_argument("--latent", type=int, default=EMBEDDED_CONFIG["latent"])
     ap.add_argument("--batch-size", type=int, default=256)
     ap.add_argument("--frame-every", type=int, default=2)
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
     _, rec = train_vposer(args.out, steps=args.steps, seed=args.seed, hidden=args.hidden, latent=args.latent,
                           batch_size=args.batch_size, frame_every=args.frame_every)
     print({k: rec[k] for k in ("train_wall_s", "final_train", "final_val", "checkpoint_bytes")})
