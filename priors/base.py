@@ -167,6 +167,20 @@ class PriorAdapter(torch.nn.Module):
         """
         raise NotImplementedError(f"prior {self.name!r} has no motion encoder")
 
+    def check_motion(self, rotations: torch.Tensor, trans: torch.Tensor | None, timestamps: torch.Tensor) -> None:
+        """Raise a ValueError naming the argument unless rotations are (B, T, 22, 3, 3), timestamps
+        (B, T) and trans (B, T, 3) or None: the shape check at the top of ``encode_motion``."""
+        where = f"{self.name}.encode_motion"
+        if rotations.dim() != 5 or rotations.shape[-3:] != (NUM_JOINTS, 3, 3):
+            raise ValueError(
+                f"{where}: rotations must be (B, T, {NUM_JOINTS}, 3, 3) local rotations, got {tuple(rotations.shape)}"
+            )
+        B, T = rotations.shape[:2]
+        if tuple(timestamps.shape) != (B, T):
+            raise ValueError(f"{where}: timestamps must be (B, T) = {(B, T)}, got {tuple(timestamps.shape)}")
+        if trans is not None and tuple(trans.shape) != (B, T, 3):
+            raise ValueError(f"{where}: trans must be (B, T, 3) = {(B, T, 3)}, got {tuple(trans.shape)}")
+
     def export_decoder(self) -> "ExportSpec":
         """The deterministic decode path (latents -> body parameters) as a plain module for ONNX.
 

@@ -302,6 +302,17 @@ def save_checkpoint(path: str | Path, state_dict: dict, config: dict) -> Path:
 
 
 
+def embedded_weights(name: str, weights: str | Path | None, default_weights: Path, otherwise: str = "") -> Path:
+    """The checkpoint a prior's ``size="embedded"`` loads: ``weights`` if given, else ``default_weights``.
+    When it is absent: FileNotFoundError naming the file, the command that trains it and ``otherwise``
+    (e.g. where the official weights are)."""
+    path = Path(weights) if weights is not None else default_weights
+    if not path.exists():
+        raise FileNotFoundError(f"embedded {name} weights not found: {path}. Train them with "
+                                f"`python -m benchmark train {name}`" + (f", {otherwise}" if otherwise else ""))
+    return path
+
+
 def embedded_out_dir(out_dir: str | Path | None, default_weights: Path, overwrite: bool) -> Path:
     """The folder a prior's ``train_embedded`` writes to: ``out_dir``, or by default the folder of
     ``default_weights``; refuses (FileExistsError) when it already holds that checkpoint and

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import torch
 from torch import nn
@@ -14,12 +13,11 @@ from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
 from priors.frequency_guided.model import FPS, FRAMES, FrequencyGuidedNetwork, PAPER_CONFIG, _ExportModule
 from priors.frequency_guided.checkpoint import (
     DEFAULT_WEIGHTS,
-    TRAIN_COMMAND,
     WHERE_TO_GET,
     load_paper_weights,
     load_project_checkpoint,
 )
-from priors.training import embedded_out_dir
+from priors.training import embedded_out_dir, embedded_weights
 
 
 
@@ -59,12 +57,8 @@ class FrequencyGuidedPrior(PriorAdapter):
             self.checkpoint = load_paper_weights(weights, self.network)
             self.weights_path = f"{self.checkpoint['motion_prior_file']},{self.checkpoint['vposer_file']}"
         elif size == "embedded":
-            path = Path(weights) if weights is not None else DEFAULT_WEIGHTS
-            if not path.exists():
-                raise FileNotFoundError(
-                    f"embedded frequency-guided weights not found: {path}. Train them with `{TRAIN_COMMAND}`, "
-                    f"or use size='paper' with the official weights ({WHERE_TO_GET})"
-                )
+            path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS,
+                                    f"or use size='paper' with the official weights ({WHERE_TO_GET})")
             self.network = load_project_checkpoint(path)
             self.checkpoint = {"file": str(path)}
             self.weights_path = str(path)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import math
-from pathlib import Path
 
 import torch
 from torch import nn
@@ -26,12 +25,11 @@ from priors.motion_dvae.model import (
 from priors.motion_dvae.checkpoint import (
     DEFAULT_WEIGHTS,
     OFFICIAL_UNKNOWN,
-    TRAIN_COMMAND,
     load_official,
     load_state_strict,
     read_project_checkpoint,
 )
-from priors.training import embedded_out_dir
+from priors.training import embedded_out_dir, embedded_weights
 
 
 
@@ -86,9 +84,7 @@ class MotionDVAEPrior(PriorAdapter):
                                  "priors.motion_dvae.checkpoint.load_official(path, key_map=...)")
             self.net = load_official(weights)
         elif size == "embedded":
-            path = Path(weights) if weights is not None else DEFAULT_WEIGHTS
-            if not path.exists():
-                raise FileNotFoundError(f"embedded motion-dvae weights not found: {path}. Train them with `{TRAIN_COMMAND}`")
+            path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS)
             sd, cfg = read_project_checkpoint(path)
             self.net = MotionDVAE(**cfg)
             load_state_strict(self.net, sd, str(path))

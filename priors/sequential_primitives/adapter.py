@@ -29,7 +29,7 @@ from priors.sequential_primitives.checkpoint import (
     network_from_checkpoint,
     read_checkpoint,
 )
-from priors.training import embedded_out_dir
+from priors.training import embedded_out_dir, embedded_weights
 
 log = logging.getLogger(__name__)
 
@@ -89,13 +89,8 @@ class SequentialPrimitivesPrior(PriorAdapter):
             load_into(self.net, ckpt, weights)
             path = Path(weights)
         elif size == "embedded":
-            path = Path(weights) if weights is not None else DEFAULT_WEIGHTS
-            if not path.exists():
-                raise FileNotFoundError(
-                    f"embedded sequential-primitives weights not found: {path}. Train them with "
-                    "`python -m benchmark train sequential-primitives` (or "
-                    "`python -m priors.sequential_primitives.train --out priors/weights`)."
-                )
+            path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS,
+                                    "or `python -m priors.sequential_primitives.train --out priors/weights`")
             self.net = network_from_checkpoint(path)
         else:
             raise ValueError(f"sequential-primitives: unknown size {size!r}; expected 'embedded' or 'paper'")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import torch
 from torch import nn
@@ -14,8 +13,8 @@ from priors.structured_latent.model import PAPER_CONFIG, StructuredLatentCVAE
 from priors.structured_latent.representation import (
     ANCHORS, JOINTS, SIXD_LAYOUT, canonical_frame, canonicalise, motion_to_chi, resample_anchors,
 )
-from priors.structured_latent.checkpoint import DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN, TRAIN_COMMAND, load_checkpoint
-from priors.training import embedded_out_dir
+from priors.structured_latent.checkpoint import DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN, load_checkpoint
+from priors.training import embedded_out_dir, embedded_weights
 
 log = logging.getLogger(__name__)
 
@@ -67,12 +66,7 @@ class StructuredLatentPrior(PriorAdapter):
             raise ValueError(OFFICIAL_UNKNOWN + ("" if weights is None else f" (weights given: {weights})"))
         if size != "embedded":
             raise ValueError(f"structured-latent: unknown size {size!r}; expected 'embedded' or 'paper'")
-        path = Path(weights) if weights is not None else DEFAULT_WEIGHTS
-        if not path.exists():
-            raise FileNotFoundError(
-                f"embedded structured-latent weights not found: {path}. Train them with `{TRAIN_COMMAND}` "
-                "(or `python -c \"from priors.structured_latent import StructuredLatentPrior as P; P.train_embedded()\"`)"
-            )
+        path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS)
         self.net, self.checkpoint_config = load_checkpoint(path)
         self.weights_path = str(path)
         self.freeze_network(device)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import roma
 import torch
@@ -12,7 +11,7 @@ from benchmark.skeleton import NUM_JOINTS
 from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
 from priors.vposer.model import NUM_BODY_JOINTS, PAPER_CONFIG, VPoser
 from priors.vposer.checkpoint import DEFAULT_WEIGHTS, WHERE_TO_GET, load_vposer_checkpoint, read_project_config
-from priors.training import embedded_out_dir
+from priors.training import embedded_out_dir, embedded_weights
 
 
 
@@ -44,13 +43,8 @@ class VPoserSlerp(PriorAdapter):
             self.vposer = VPoser(**PAPER_CONFIG)
             self.checkpoint = load_vposer_checkpoint(weights, self.vposer)
         elif size == "embedded":
-            path = Path(weights) if weights is not None else DEFAULT_WEIGHTS
-            if not path.exists():
-                raise FileNotFoundError(
-                    f"embedded VPoser weights not found: {path}. Train them with "
-                    "`python -c \"from priors.vposer.train import train_vposer; train_vposer('priors/weights')\"` "
-                    "(or `python -m benchmark train vposer-slerp`), or use size='paper' with the official V02_05."
-                )
+            path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS,
+                                    "or use size='paper' with the official V02_05.")
             self.vposer = VPoser(**read_project_config(path))
             self.checkpoint = load_vposer_checkpoint(path, self.vposer)
         else:
@@ -118,16 +112,7 @@ class VPoserSlerp(PriorAdapter):
         ``timestamps`` are only checked for shape. Deterministic (the encoder mean, eval mode), no
         gradient.
         """
-        if rotations.dim() != 5 or rotations.shape[-3:] != (NUM_JOINTS, 3, 3):
-            raise ValueError(
-                f"vposer-slerp.encode_motion: rotations must be (B, T, {NUM_JOINTS}, 3, 3) local rotations, "
-                f"got {tuple(rotations.shape)}"
-            )
-        B, T = rotations.shape[:2]
-        if tuple(timestamps.shape) != (B, T):
-            raise ValueError(f"vposer-slerp.encode_motion: timestamps must be (B, T) = {(B, T)}, got {tuple(timestamps.shape)}")
-        if trans is not None and tuple(trans.shape) != (B, T, 3):
-            raise ValueError(f"vposer-slerp.encode_motion: trans must be (B, T, 3) = {(B, T, 3)}, got {tuple(trans.shape)}")
+        self.check_motion(rotations, trans, timestamps)
         return {"z": self.encode_poses(rotations[:, :, 1:])}
 
     def export_decoder(self) -> ExportSpec:
