@@ -125,3 +125,26 @@ def test_every_module_imports_on_its_own():
     assert proc.returncode == 0, proc.stderr[-3000:]
     failed = json.loads(proc.stdout.strip().splitlines()[-1])
     assert not failed, "modules that fail to import on their own:\n" + "\n".join(f"{k}:\n{v}" for k, v in failed.items())
+
+
+SHAPE = ("__init__", "model", "checkpoint", "adapter", "train")
+# what each file of a prior package may import from its own package (anywhere in the file)
+MAY_IMPORT = {"model": set(), "checkpoint": {"model"}, "train": {"model", "checkpoint"},
+              "adapter": {"model", "checkpoint", "train"}}
+
+
+def test_every_prior_package_has_the_common_shape_and_layering():
+    """priors/<name>/ holds __init__, model, checkpoint, adapter and train (package docstring of
+    :mod:`priors`), and inside a package model <- checkpoint <- {train, adapter}: the network never
+    imports its file formats, recipe or adapter; train never imports the adapter."""
+    modules = project_modules()
+    packages = sorted(d.name for d in (ROOT / "priors").iterdir() if (d / "__init__.py").is_file())
+    assert {"vposer", "frequency_guided", "sequential_primitives", "motion_dvae", "hmvae", "structured_latent"} <= set(packages)
+    for pkg in packages:
+        missing = [f for f in SHAPE if not (ROOT / "priors" / pkg / f"{f}.py").is_file()]
+        assert not missing, f"priors/{pkg}/ lacks {[f + '.py' for f in missing]} (see the priors package docstring)"
+        for part, allowed in MAY_IMPORT.items():
+            name = f"priors.{pkg}.{part}"
+            own = {m.split(".")[2] for m in imported_modules(name, modules[name], modules)
+                   if m.startswith(f"priors.{pkg}.") and m.split(".")[2] in MAY_IMPORT}
+            assert own <= allowed, f"{name} imports {sorted(own - allowed)} of its own package; allowed: {sorted(allowed)}"
