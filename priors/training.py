@@ -301,7 +301,6 @@ def save_checkpoint(path: str | Path, state_dict: dict, config: dict) -> Path:
     return path
 
 
-
 def embedded_weights(name: str, weights: str | Path | None, default_weights: Path, otherwise: str = "") -> Path:
     """The checkpoint a prior's ``size="embedded"`` loads: ``weights`` if given, else ``default_weights``.
     When it is absent: FileNotFoundError naming the file, the command that trains it and ``otherwise``
@@ -379,6 +378,7 @@ def loop_record(result, *, steps: int, seed: int, lr: float, weight_decay: float
         "history": result.history,
         **environment_record(),
     }
+
 
 def environment_record() -> dict:
     """Library versions, host, date and git revision, for a training record."""

@@ -20,7 +20,6 @@ from priors.frequency_guided.checkpoint import (
 from priors.training import embedded_out_dir, embedded_weights
 
 
-
 def n_windows_for(window_s: float, frames: int = FRAMES, fps: float = FPS) -> int:
     """Windows covering ``window_s`` seconds (the protocol's grid rule)."""
     return max(1, math.ceil(float(window_s) * fps / frames - 1e-9))

@@ -33,7 +33,6 @@ WHERE_TO_GET = (
 TRAIN_COMMAND = "python -m benchmark train frequency-guided  (or: python -m priors.frequency_guided.train --out priors/weights)"
 
 
-
 # -- checkpoint loading ------------------------------------------------------------------------
 def _strip_ddp(state: dict, file) -> dict:
     if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):

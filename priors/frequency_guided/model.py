@@ -20,7 +20,6 @@ from benchmark.skeleton import NUM_JOINTS
 from priors.vposer.model import NUM_BODY_JOINTS, VPoserV1, sixd_interleaved_to_matrix
 
 
-
 FRAMES = 128
 FPS = 30.0
 INPUT_CHANNELS = 158
@@ -44,6 +43,7 @@ EMBEDDED_CONFIG = {
     "channels": [32, 32, 64], "dct_hidden": 256, "pose_code": 32, "unused_layers": False,
     "vposer": {"hidden": 256, "latent": 32},
 }
+
 
 # -- pure functions: DCT bases, headings, joints, encoder inputs --------------------------------
 def dct_matrix(n: int, dtype=torch.float32) -> torch.Tensor:

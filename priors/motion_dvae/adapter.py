@@ -32,7 +32,6 @@ from priors.motion_dvae.checkpoint import (
 from priors.training import embedded_out_dir, embedded_weights
 
 
-
 # -- the adapter -----------------------------------------------------------------------------
 def _regular_30fps(timestamps: torch.Tensor, fps: float = FPS, tol: float = 1e-4) -> bool:
     t = timestamps.to(torch.float64)

@@ -10,7 +10,6 @@ import torch
 from priors.motion_dvae.model import FPS, MotionDVAE, PAPER_CONFIG
 
 
-
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "motion_dvae.pt"
 TRAIN_COMMAND = "python -m benchmark train motion-dvae"
 
@@ -18,7 +17,6 @@ OFFICIAL_UNKNOWN = (
     "the official Motion-DVAE checkpoint format is unknown (the repository, presumably "
     "github.com/g-fiche/Motion-DVAE, could not be read when this adapter was written)"
 )
-
 
 
 # -- checkpoints -----------------------------------------------------------------------------

@@ -17,7 +17,6 @@ from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from benchmark.skeleton import NUM_JOINTS
 
 
-
 FPS = 30.0
 POSE_DIM = 3 + 3 + 3 * (NUM_JOINTS - 1)  # trans, root, 21 body joints = 69
 STATE_DIM = 2 * POSE_DIM  # + velocities = 138
@@ -32,6 +31,7 @@ NOISE_PRIOR_SHAPE = 100.0  # Inverse-Gamma shape a0 of the per-frame noise varia
 NOISE_PRIOR_SCALE_M = 0.1  # prior mean precision a0 / b0 = 1 / NOISE_PRIOR_SCALE_M^2
 LOGVAR_RANGE = (-12.0, 8.0)
 DEC_LOGVAR_RANGE = (-7.0, 2.0)  # decoder variance bounds (standardised units)
+
 
 # -- geometry: canonical frame, state vectors, body points -------------------------------------
 def canonicalise(rot: torch.Tensor, trans: torch.Tensor):

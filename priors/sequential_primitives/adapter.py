@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_WINDOW_S = 4.0  # decode's time scale when no batch set one (table1's window)
 
+
 # -- export ------------------------------------------------------------------------------------
 class DecoderExport(nn.Module):
     """(z (B, m, D), shape (B, S), tau (B, T) normalised time) -> (rotations (B, T, 22, 3, 3), trans (B, T, 3))."""

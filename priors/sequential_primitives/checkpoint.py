@@ -13,7 +13,6 @@ import torch
 from priors.sequential_primitives.model import ARCH_KEYS, FORMAT, SequentialPrimitives
 
 
-
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "sequential_primitives.pt"
 
 NOT_PUBLIC = (

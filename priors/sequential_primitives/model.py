@@ -21,7 +21,6 @@ from benchmark.rotations import matrix_to_sixd
 from benchmark.skeleton import NUM_JOINTS
 
 
-
 FOOT_JOINTS = (10, 11)
 MODEL_JOINTS = tuple(j for j in range(NUM_JOINTS) if j not in FOOT_JOINTS)  # 20 joints, root first
 NUM_MODEL_JOINTS = len(MODEL_JOINTS)
@@ -43,6 +42,7 @@ EMBEDDED_CONFIG = {
 ARCH_KEYS = tuple(EMBEDDED_CONFIG)
 
 TRAIN_FPS = 30.0
+
 
 # -- small tensor helpers -----------------------------------------------------------------------
 def _identity6(dtype=torch.float32, device=None) -> torch.Tensor:

@@ -45,6 +45,7 @@ POINT_NOISE_M = 0.005
 DEFAULT_STEPS = 1500  # motion VAE
 DEFAULT_POINT_STEPS = 600  # initialisation encoder
 
+
 # -- the loss -----------------------------------------------------------------------------------
 def primitives_loss(net: SequentialPrimitives, R: torch.Tensor, trans: torch.Tensor, tau: torch.Tensor,
                     shape: torch.Tensor, rest_joints: torch.Tensor, lambda_3d: float,
@@ -73,7 +74,6 @@ def primitives_loss(net: SequentialPrimitives, R: torch.Tensor, trans: torch.Ten
     loss = L_global + L_segment + LAMBDA_KL * kl + LAMBDA_REG * reg
     return {"loss": loss, "global": L_global, "segment": L_segment, "kl": kl, "reg": reg, "pose": pose,
             "trans": tr, "joints": joints}
-
 
 
 # -- training data ------------------------------------------------------------------------------

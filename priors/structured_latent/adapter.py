@@ -18,6 +18,7 @@ from priors.training import embedded_out_dir, embedded_weights
 
 log = logging.getLogger(__name__)
 
+
 class _AnchorDecoder(nn.Module):
     """(z (B, L), shape (B, S)) -> (anchor rotations (B, 100, 22, 3, 3), anchor trans (B, 100, 3) m,
     tau_hat (B, 100) s): the deterministic decode path, for ONNX."""

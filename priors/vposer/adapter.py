@@ -14,7 +14,6 @@ from priors.vposer.checkpoint import DEFAULT_WEIGHTS, WHERE_TO_GET, load_vposer_
 from priors.training import embedded_out_dir, embedded_weights
 
 
-
 # -- the adapter -----------------------------------------------------------------------------
 class VPoserSlerp(PriorAdapter):
     """VPoser+SLERP: one VPoser latent per observed frame; the protocol SLERPs between them.

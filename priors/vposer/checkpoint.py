@@ -191,7 +191,6 @@ def read_project_config(file: str | Path) -> dict:
     return {"hidden": int(cfg["hidden"]), "latent": int(cfg["latent"])}
 
 
-
 V1_WHERE_TO_GET = (
     "VPoser v1.0 is distributed (registration required) as vposer_v1_0.zip on the SMPL-X download page "
     "https://smpl-x.is.tue.mpg.de/download.php; the weights are vposer_v1_0/snapshots/TR00_E096.pt"

@@ -13,10 +13,10 @@ from torch import nn
 from benchmark.rotations import sixd_to_matrix
 
 
-
 NUM_BODY_JOINTS = 21  # SMPL joints 1..21
 PAPER_CONFIG = {"hidden": 512, "latent": 32}
 EMBEDDED_CONFIG = {"hidden": 256, "latent": 32}
+
 
 # -- the network -----------------------------------------------------------------------------
 class NormalDistDecoder(nn.Module):
@@ -90,8 +90,6 @@ class VPoser(nn.Module):
         q = self.encode(pose_body)
         z = q.rsample()
         return {"q_z": q, "z": z, "rotations": self.decode(z)}
-
-
 
 
 def sixd_interleaved_to_matrix(x: torch.Tensor) -> torch.Tensor:
