@@ -108,6 +108,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# exception types whose message the harness writes itself (file, field, fix): printed as they are
+_OWN_ERRORS = (ValueError, FileNotFoundError, FileExistsError, KeyError, ImportError)
+
+
 def error_message(exc: BaseException) -> str:
     """The text after ``error:`` for an exception: its message (a KeyError's without the quotes
     ``str()`` adds); an exception type the harness does not raise itself is named, and an OSError
@@ -122,7 +126,7 @@ def error_message(exc: BaseException) -> str:
             text += "; free some space or choose another folder"
     else:
         text = str(exc).strip()
-    own = isinstance(exc, (ValueError, FileNotFoundError, FileExistsError, KeyError)) and text
+    own = isinstance(exc, _OWN_ERRORS) and text
     if not own:
         text = f"{type(exc).__name__}: {text or 'no message'}"
     return text
@@ -145,7 +149,7 @@ def main(argv=None) -> int:
         if debug:
             traceback.print_exc()
         text = error_message(exc)
-        if not debug and not isinstance(exc, (ValueError, FileNotFoundError, FileExistsError, KeyError)):
+        if not debug and not isinstance(exc, _OWN_ERRORS):
             text += " (run with --debug for the traceback)"
         print(f"error: {text}", file=sys.stderr)
         return 2

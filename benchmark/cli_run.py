@@ -75,6 +75,13 @@ def _cmd_run(args) -> int:
     for name in priors:
         get_prior_class(name)
     weights = _parse_pairs(args.weights, "--weights")
+    unknown = sorted(set(weights) - set(priors))
+    if unknown:
+        raise ValueError(f"--weights given for prior(s) {unknown} that are not being run ({', '.join(priors)}); "
+                         "add them with --prior NAME or drop those --weights")
+    for name, path in weights.items():
+        if not Path(path.split(",")[0]).expanduser().exists():
+            raise FileNotFoundError(f"--weights {name}={path}: no such file or folder")
     from benchmark.body import parse_body_spec
 
     parse_body_spec(args.body)
@@ -172,6 +179,9 @@ def _cmd_describe(args) -> int:
 def _cmd_check_prior(args) -> int:
     from benchmark.conformance import check_prior
 
+    # input errors (an unknown prior, a weights file torch cannot read) are errors, exit 2, not a
+    # conformance FAIL: construct once up front
+    make_adapter(args.name, size=args.size, weights=args.weights, device="cpu")
     ok = check_prior(args.name, size=args.size, weights=args.weights)
     return 0 if ok else 1
 
@@ -191,7 +201,16 @@ def _cmd_train(args) -> int:
 def _cmd_export_onnx(args) -> int:
     from benchmark.export_onnx import ParityError, export_onnx, sidecar_path
 
+    from benchmark.export_onnx import require_onnx_packages
+    from benchmark.outdir import check_out_dir
+
     out = Path(args.out) if args.out else Path("exports") / f"{args.name}.{args.size}.onnx"
+    require_onnx_packages()
+    if out.suffix != ".onnx":
+        raise ValueError(f"--out {out}: the output must end in .onnx (its record is written beside it as .json)")
+    if out.exists() and not args.force:
+        raise FileExistsError(f"{out} exists: pass --force to overwrite it, or --out FILE to write elsewhere")
+    check_out_dir(out.parent, min_free_bytes=1 << 20, what="the folder of --out")
     adapter = make_adapter(args.name, size=args.size, weights=args.weights, device="cpu")
     try:
         record = export_onnx(adapter, out, opset=args.opset, overwrite=args.force, check=not args.no_check)

@@ -80,7 +80,7 @@ def convert(input_path, out_path, fps: float | None = None, overwrite: bool = Fa
         )
     if Path(input_path).resolve() == out_path.resolve():
         raise ValueError(f"{out_path}: output would replace the input file; choose another --out path")
-    detect_format(input_path) if Path(input_path).suffix.lower() != ".bvh" else None  # wrong format before the output check
+    detect_format(input_path)  # a wrong format is reported before the output folder is checked
     if not Path(input_path).is_file():
         raise FileNotFoundError(f"{input_path}: no such file")
     from benchmark.outdir import check_out_dir

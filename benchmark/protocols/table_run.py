@@ -38,7 +38,9 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
             try:
                 m = load_amass(f) if "mocap_framerate" in keys or "mocap_frame_rate" in keys else Motion.load(f)
             except KeyError as exc:
-                raise ValueError(f"--data {data}: {f} has no field {exc}; it holds {sorted(keys)}. Convert it with "
+                text = exc.args[0] if exc.args and isinstance(exc.args[0], str) and " " in exc.args[0] else \
+                    f"{f}: no field {exc} (fields present: {sorted(keys)})"
+                raise ValueError(f"--data {data}: {text}; convert the file with "
                                  "`python -m benchmark data convert FILE --out FILE.npz`") from None
             by_id[str(f.relative_to(root) if root.is_dir() else f.name)] = m
     if body is not None:
