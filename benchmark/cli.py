@@ -126,10 +126,14 @@ def error_message(exc: BaseException) -> str:
             text += "; free some space or choose another folder"
     else:
         text = str(exc).strip()
-    own = isinstance(exc, _OWN_ERRORS) and text
-    if not own:
+    if not (_is_own(exc) and text):
         text = f"{type(exc).__name__}: {text or 'no message'}"
     return text
+
+
+def _is_own(exc: BaseException) -> bool:
+    """An error whose message already names the file / field / fix: printed without its type."""
+    return isinstance(exc, _OWN_ERRORS) or (isinstance(exc, OSError) and exc.filename is not None and bool(exc.strerror))
 
 
 def main(argv=None) -> int:
@@ -149,7 +153,7 @@ def main(argv=None) -> int:
         if debug:
             traceback.print_exc()
         text = error_message(exc)
-        if not debug and not isinstance(exc, _OWN_ERRORS):
+        if not debug and not _is_own(exc):
             text += " (run with --debug for the traceback)"
         print(f"error: {text}", file=sys.stderr)
         return 2

@@ -170,9 +170,14 @@ def make_adapter(name: str, size: str = "embedded", weights: str | None = None, 
     try:
         adapter = cls(size=size, weights=weights, device=device)
     except _LOAD_ERRORS as exc:
-        file = _torch_load_file(exc)
+        file, cause = None, exc
+        while cause is not None and file is None:  # raw, or re-raised by the adapter ``from`` torch's error
+            file = _torch_load_file(cause)
+            if file is None:
+                cause = cause.__cause__
         if file is None:
             raise
+        exc = cause
         embedded = weights is None and size == "embedded"
         fix = (f"restore it (git checkout -- {file}) or retrain it (python -m benchmark train {name})" if embedded else
                "check the file: download it again, or pass the right file with --weights")

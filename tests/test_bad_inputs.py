@@ -23,7 +23,10 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.cli import main
+if __name__ == "__main__":  # this checkout's benchmark, not an installed one
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmark.cli import main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -423,7 +426,7 @@ def _(tmp, mp):
     return ["export-onnx", "vposer-slerp", "--out", str(tmp / "v.onnx")]
 
 
-@case("export-onnx: empty hmvae.pt", "export-onnx", "hmvae.pt", "not a torch checkpoint")
+@case("export-onnx: empty hmvae.pt", "export-onnx", "hmvae.pt", "not a readable torch checkpoint", "EOFError")
 def _(tmp, mp):
     return ["export-onnx", "hmvae", "--weights", str(text_file(tmp / "hmvae.pt", "")), "--out", str(tmp / "h.onnx")]
 
@@ -606,8 +609,10 @@ def test_an_unexpected_exception_is_one_line_naming_its_type(monkeypatch, capsys
     assert err == "error: AssertionError: internal invariant broken (run with --debug for the traceback)"
 
 
-if __name__ == "__main__":  # print the table of tests/README.md
+if __name__ == "__main__":  # print the table of tests/README.md: python tests/test_bad_inputs.py
     import tempfile
+
+    assert Path(sys.modules["benchmark"].__file__).resolve().parents[1] == ROOT, "run from the repository root"
 
     class _MP:
         def __init__(self):
@@ -631,6 +636,8 @@ if __name__ == "__main__":  # print the table of tests/README.md
                 os.chdir(cwd)
                 mp.undo()
         text = message.replace(d, "TMP").splitlines()
+        if text and text[0].startswith("usage:"):  # argparse: usage lines, then the error line
+            text = text[-1:]
         shown = text[0] if len(text) == 1 else text[0] + " ... (" + str(len(text) - 1) + " more lines: paths tried)"
         shown = shown.replace("|", "\\|")
         print(f"| {i} | {c.where} | {c.name} | `{shown}` |")

@@ -282,3 +282,38 @@ def test_sigkill_at_any_point_then_rerun_gives_the_same_table(tmp_path):
         assert _comparable(out) == _comparable(ref)
         for f in (out / "units").glob("*.json"):  # every stored unit is byte-identical to the reference's
             assert f.read_bytes() == (ref / "units" / f.name).read_bytes()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/fd")
+def test_a_full_disk_while_writing_names_the_file(tmp_path, monkeypatch, capsys):
+    """ENOSPC in the middle of writing the tables: one line naming the file and the fix."""
+    import errno
+
+    import benchmark.results as results
+    from benchmark.cli import main
+
+    tiny_table1(monkeypatch)
+    write_motion(tmp_path / "data" / "a.npz")
+    real_fsync = os.fsync
+
+    def full(fd):
+        if ".table1.md." in os.readlink(f"/proc/self/fd/{fd}"):  # the temp file of table1.md
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_fsync(fd)
+
+    monkeypatch.setattr(results.os, "fsync", full)
+    rc = main(["run", "table1", "--prior", "no-prior", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err == (f"error: {tmp_path / 'o' / 'table1.md'}: No space left on device; free some space or "
+                               "choose another folder")
+    assert not list((tmp_path / "o").glob(".table1.md.*"))  # no temp file left behind
+
+
+def test_onnx_is_a_normal_dependency():
+    """export-onnx works after a plain ``pip install -e .``: onnx is in the project's dependencies,
+    not only in an extra."""
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    names = {d.split(">")[0].split("=")[0].split("<")[0].strip() for d in project["dependencies"]}
+    assert {"onnx", "onnxruntime"} <= names
