@@ -146,9 +146,10 @@ def describe_body(spec: str) -> str:
 
     body = get_body(spec)
     source = getattr(body, "source_path", None)
+    file_joints = getattr(body, "num_file_joints", None)
     lines = [f"body {body.name}" + (f" from {source}" if source else " (embedded)"),
-             f"  vertices {body.num_vertices:,}, faces {int(body.faces.shape[0]):,}, "
-             f"joints driven 22 (file: {getattr(body, 'num_file_joints', 22)}), shape parameters {body.shape_dim}"]
+             f"  vertices {body.num_vertices:,}, faces {int(body.faces.shape[0]):,}, joints driven 22"
+             + (f" (file: {file_joints})" if file_joints else "") + f", shape parameters {body.shape_dim}"]
     return "\n".join(lines)
 
 

@@ -317,3 +317,48 @@ def test_onnx_is_a_normal_dependency():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     names = {d.split(">")[0].split("=")[0].split("<")[0].strip() for d in project["dependencies"]}
     assert {"onnx", "onnxruntime"} <= names
+
+
+_CLI_SCRIPT = textwrap.dedent("""
+    import sys
+    sys.path[:0] = [{root!r}, {tests!r}]
+    import pytest
+    from tiny_run import tiny_table1
+    from benchmark.cli import main
+
+    mp = pytest.MonkeyPatch()
+    tiny_table1(mp, fps=(5, 10))
+    sys.exit(main(["run", "table1", "--prior", "no-prior", "--prior", "vposer-slerp", "--data", sys.argv[1],
+                   "--out", sys.argv[2]]))
+""")
+
+
+@pytest.mark.slow
+def test_sigkill_through_the_cli_then_rerun_gives_the_same_table(tmp_path):
+    """The real protocol (shrunk): a run killed after its first unit file, rerun into the same --out
+    (taking over the dead run's lock), gives the rows and CSV of an uninterrupted run, bit for bit."""
+    script = tmp_path / "run.py"
+    script.write_text(_CLI_SCRIPT.format(root=str(ROOT), tests=str(ROOT / "tests")))
+    data = tmp_path / "data"
+    write_motion(data / "a.npz", seed=0, speed=1.0)
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    ref, out = tmp_path / "ref", tmp_path / "killed"
+    subprocess.run([sys.executable, str(script), str(data), str(ref)], cwd=ROOT, env=env, check=True, capture_output=True)
+    proc = subprocess.Popen([sys.executable, str(script), str(data), str(out)], cwd=ROOT, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    while not list((out / "units").glob("*.json")) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert (out / ".lock").exists() and 1 <= len(list((out / "units").glob("*.json"))) < 4
+    done = subprocess.run([sys.executable, str(script), str(data), str(out)], cwd=ROOT, env=env, check=True,
+                          capture_output=True, text=True)
+    assert "taking over a stale lock" in done.stdout
+    a, b = (json.loads((d / "table1.json").read_text()) for d in (ref, out))
+
+    def results(table):  # every cell without its measured seconds (wall-clock facts, not results)
+        return [[{k: v for k, v in c.items() if k not in ("fit_s", "eval_s")} for c in r["cells"]] for r in table["rows"]]
+
+    assert results(a) == results(b) and b["provenance"]["resume"]["reused"] >= 1
+    assert (ref / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
