@@ -125,27 +125,27 @@ def no_body_models(mp, tmp):
 
 @case("unknown table", "run", "unknown table 'tabel1'", "Did you mean 'table1'")
 def _(tmp, mp):
-    return ["run", "tabel1", "--out", str(tmp / "o")]
+    return ["run", "tabel1", "--prior", "no-prior", "--out", str(tmp / "o")]
 
 
 @case("unknown profile", "run", "unknown profile 'nope'", "smoke")
 def _(tmp, mp):
-    return ["run", "table1", "--profile", "nope", "--out", str(tmp / "o")]
+    return ["run", "table1", "--prior", "no-prior", "--profile", "nope", "--out", str(tmp / "o")]
 
 
 @case("--device tpu", "run", "--device 'tpu'", "cpu, cuda")
 def _(tmp, mp):
-    return ["run", "table1", "--device", "tpu", "--out", str(tmp / "o")]
+    return ["run", "table1", "--prior", "no-prior", "--device", "tpu", "--out", str(tmp / "o")]
 
 
 @case("--device cuda:x (malformed)", "run", "--device 'cuda:x'")
 def _(tmp, mp):
-    return ["run", "table1", "--device", "cuda:x", "--out", str(tmp / "o")]
+    return ["run", "table1", "--prior", "no-prior", "--device", "cuda:x", "--out", str(tmp / "o")]
 
 
 @case("--device cuda without CUDA", "run", "no CUDA device", "--device cpu", needs="no-cuda")
 def _(tmp, mp):
-    return ["run", "table1", "--device", "cuda", "--out", str(tmp / "o")]
+    return ["run", "table1", "--prior", "no-prior", "--device", "cuda", "--out", str(tmp / "o")]
 
 
 @case("misspelt --prior", "run", "unknown prior 'vposer-slrp'", "Did you mean 'vposer-slerp'")
@@ -155,12 +155,12 @@ def _(tmp, mp):
 
 @case("--out is a file", "run", "is a file, not a folder")
 def _(tmp, mp):
-    return ["run", "table1", "--out", str(text_file(tmp / "out.txt"))]
+    return ["run", "table1", "--prior", "no-prior", "--out", str(text_file(tmp / "out.txt"))]
 
 
 @case("--out below a file", "run", "cannot be created because", "is a file")
 def _(tmp, mp):
-    return ["run", "table1", "--out", str(text_file(tmp / "out.txt") / "sub")]
+    return ["run", "table1", "--prior", "no-prior", "--out", str(text_file(tmp / "out.txt") / "sub")]
 
 
 @case("--out not writable", "run", "not writable", "chmod u+w")
@@ -169,7 +169,7 @@ def _(tmp, mp):
         raise PermissionError(errno.EACCES, "Permission denied")
 
     mp.setattr("benchmark.outdir.tempfile.mkstemp", denied)  # as root, chmod cannot make a folder read-only
-    return ["run", "table1", "--out", str(tmp / "ro")]
+    return ["run", "table1", "--prior", "no-prior", "--out", str(tmp / "ro")]
 
 
 @case("--out on a full disk", "run", "MiB free", "free some space")
@@ -177,7 +177,7 @@ def _(tmp, mp):
     import shutil
 
     mp.setattr("benchmark.outdir.shutil.disk_usage", lambda p: shutil._ntuple_diskusage(10 << 30, 10 << 30, 4096))
-    return ["run", "table1", "--out", str(tmp / "full")]
+    return ["run", "table1", "--prior", "no-prior", "--out", str(tmp / "full")]
 
 
 @case("--out locked by a live run", "run", "another run is writing there", "pid")
@@ -187,7 +187,7 @@ def _(tmp, mp):
     out = tmp / "locked"
     out.mkdir()
     (out / ".lock").write_text(json.dumps({"pid": os.getppid(), "host": socket.gethostname(), "started": time.time()}))
-    return ["run", "table1", "--out", str(out)]
+    return ["run", "table1", "--prior", "no-prior", "--out", str(out)]
 
 
 @case("--weights without NAME=", "run", "--weights must look like NAME=VALUE")
@@ -207,7 +207,7 @@ def _(tmp, mp):
 
 @case("--data folder missing", "run", "--data", "no such file or folder")
 def _(tmp, mp):
-    return ["run", "table1", "--data", str(tmp / "nowhere"), "--out", str(tmp / "o")]
+    return ["run", "table1", "--prior", "no-prior", "--data", str(tmp / "nowhere"), "--out", str(tmp / "o")]
 
 
 @case("--data folder without .npz", "run", "no .npz motion files")
@@ -239,12 +239,12 @@ def _(tmp, mp):
 
 @case("--body misspelt", "run", "unknown body model 'smpll'", "Did you mean 'smpl'")
 def _(tmp, mp):
-    return ["run", "table1", "--body", "smpll", "--out", str(tmp / "o")]
+    return ["run", "table1", "--prior", "no-prior", "--body", "smpll", "--out", str(tmp / "o")]
 
 
 @case("--resume always (not a policy)", "run", "invalid choice: 'always'")
 def _(tmp, mp):
-    return ["run", "table1", "--resume", "always", "--out", str(tmp / "o")]
+    return ["run", "table1", "--prior", "no-prior", "--resume", "always", "--out", str(tmp / "o")]
 
 
 @case("--weights truncated vposer.pt", "run", "vposer.pt", "not a readable torch checkpoint")
@@ -584,7 +584,7 @@ def test_wrong_out_fails_in_seconds_before_any_fitting(tmp_path):
     target.write_text("{}")
     env = dict(os.environ, OMP_NUM_THREADS="1")
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "benchmark", "run", "table1", "--out", str(target)], cwd=ROOT,
+    proc = subprocess.run([sys.executable, "-m", "benchmark", "run", "table1", "--prior", "no-prior", "--out", str(target)], cwd=ROOT,
                           capture_output=True, text=True, env=env, timeout=120)
     elapsed = time.perf_counter() - t0
     assert proc.returncode == 2 and elapsed < 15, (proc.returncode, elapsed, proc.stderr)
