@@ -71,6 +71,7 @@ def _cmd_run(args) -> int:
     device = _device(args.device)
     profile_name = args.profile or ("full" if device.startswith("cuda") else "quick")
     profile = get_profile(profile_name, table=spec["name"])
+    out = check_out_dir(args.out)  # cheap, and the costliest mistake to find late: first
     priors = args.prior or default_priors(spec)
     for name in priors:
         get_prior_class(name)
@@ -86,7 +87,6 @@ def _cmd_run(args) -> int:
 
     parse_body_spec(args.body)
     _check_data_arg(args.data)
-    out = check_out_dir(args.out)
     with OutDirLock(out, command="python -m benchmark " + " ".join(sys.argv[1:])):
         return _run_locked(args, spec, device, profile_name, profile, priors, weights, out)
 
