@@ -394,7 +394,7 @@ def _(tmp, mp):
 
 @case("describe: corrupt embedded weights", "describe", "motion_dvae.pt", "git checkout", "train motion-dvae")
 def _(tmp, mp):
-    import priors.motion_dvae as module
+    import priors.motion_dvae.adapter as module
 
     mp.setattr(module, "DEFAULT_WEIGHTS", truncated_copy(WEIGHTS / "motion_dvae.pt", tmp / "motion_dvae.pt"))
     return ["describe", "motion-dvae"]
