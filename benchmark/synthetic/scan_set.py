@@ -74,7 +74,8 @@ def folder_name(sequence_id: str) -> str:
 
 def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int = 10000, noise_mm: float = 3.0,
                   holes: float = 0.1, duration: float = 4.0, seed: int = 0, up: str = "y", units: str = "m",
-                  body=None, overwrite: bool = False, table_capture: int | None = None) -> list[Path]:
+                  body=None, overwrite: bool = False, table_capture: int | None = None,
+                  table_spec: dict | None = None) -> list[Path]:
     """Write the scan set (module docstring); ``sequences``: a count (the same deterministic selection
     as ``run``'s profiles: :func:`benchmark.protocols.table_run.select_sequences`) or a list of ids.
 
@@ -82,7 +83,8 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
     synthesises for a one-sequence work unit (table1's capture rate, points per frame, scan noise
     and capture seed; ``fps``, ``points``, ``noise_mm``, ``holes`` and ``duration`` are ignored), so
     that ``run table1 --data scans=OUT`` sees the same observations as the synthetic run (the
-    check of the scan path; smoke units hold one sequence).
+    check of the scan path; smoke units hold one sequence). ``table_spec``: another table1-like spec
+    than ``benchmark/tables/table1.yaml`` for that (tests use shorter windows).
     """
     from benchmark.loaders.scans import UNITS, Z_UP_TO_Y_UP
     from benchmark.observations import make_scans
@@ -112,7 +114,7 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
     if table_capture is not None:
         from benchmark.catalog import load_table_spec
 
-        d = load_table_spec("table1")["data"]
+        d = (table_spec or load_table_spec("table1"))["data"]
         if float(d.get("window_start_s", 0.0)):
             raise ValueError("table_capture: table1's window_start_s is not 0; not supported")
         fps, sampled, noise_mm, holes, duration = (float(d["capture_fps"]), int(d["points_per_frame"]),
