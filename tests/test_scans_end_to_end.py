@@ -283,3 +283,12 @@ def test_complete_no_prior_recovers_the_generating_motion(tmp_path, anny_body):
     diag = run_complete(args)
     assert diag["truth"]["mpjpe_mm"] <= FITS_MPJPE_TARGET_MM
     assert diag["truth"]["frames_facing_backwards"] == 0
+
+
+def test_a_capture_slower_than_the_observed_rate_is_an_error_naming_the_folder(tmp_path):
+    seq = ScanSequence(write_folder(tmp_path / "slow", [person() for _ in range(4)], fps=4.0))
+    source = ScanCompletionData(table1_spec(window_s=0.8), None, {"slow": seq}, seed=0)
+    with pytest.raises(ValueError, match=r"slow: the capture \(4 fps.*no distinct frame for every instant at 5 fps"):
+        source.observe(["slow"], 100, 5.0, seed=0)
+    obs, offsets = source.observe(["slow"], 100, 2.0, seed=0)  # 2 fps from 4 fps: every other frame
+    assert obs.timestamps[0].tolist() == [0.0, 0.5] and offsets == [0.0] and obs.lengths.tolist() == [[100, 100]]

@@ -152,6 +152,10 @@ class ScanCompletionData:
             seq = self.motions[sid]
             _, t0 = self._window_start(seq)
             idx, off = seq.nearest_frames(t0 + np.arange(n, dtype=np.float64) / fps)
+            if n > 1 and not (np.diff(idx) > 0).all():
+                raise ValueError(f"scan folder {seq.folder}: the capture ({seq.capture_fps:.4g} fps, "
+                                 f"{seq.timestamps_source}) has no distinct frame for every instant at {fps:g} fps; "
+                                 "the table needs captures at least as fast as its densest observed rate")
             clouds.append(self._points(sid, idx))
             times.append(seq.timestamps[idx])
             offsets.append(float(np.abs(off).max()))
