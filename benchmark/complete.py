@@ -66,10 +66,10 @@ def _load_input(path: Path, args, body, spec: dict):
     window_spec = float(spec["data"]["window_s"])
     if path.is_dir():
         seq = ScanSequence(path, up=args.up, units=args.units, fps=args.capture_fps)
-        window = min(args.window or window_spec, seq.duration)
         start = args.start
-        if start + window > seq.duration + 1e-9:
-            raise ValueError(f"{path}: --start {start} + window {window} s goes past the capture ({seq.duration:.3f} s)")
+        if not 0 <= start < seq.duration:
+            raise ValueError(f"{path}: --start {start} s lies outside the capture ({seq.duration:.3f} s)")
+        window = min(args.window or window_spec, seq.duration - start)
         wspec = copy.deepcopy(spec)
         wspec["data"].update(window_s=window, window_start_s=start)
         source = ScanCompletionData(wspec, body, {path.name: seq}, args.seed)
@@ -84,9 +84,9 @@ def _load_input(path: Path, args, body, spec: dict):
     if args.up != "y" or args.units != "m":
         raise ValueError("--up / --units apply to scan folders; motion files are converted by their loaders")
     motion = _shape_for_body(load_motion(path), body)
-    window = min(args.window or window_spec, motion.duration)
     if args.start:
         motion = motion.window(float(motion.timestamps[0]) + args.start, motion.duration - args.start)
+    window = min(args.window or window_spec, motion.duration)
     obs, t_start = _observation_from_motion(motion, body, spec, window, args.points, args.fps, args.seed)
     what = (f"motion {path} ({motion.num_frames} frames at {motion.fps:.4g} fps), scanned at "
             f"{spec['data']['capture_fps']} fps x {spec['data']['points_per_frame']} points; observed {obs.num_frames} frames")
