@@ -9,7 +9,6 @@ import logging
 
 import numpy as np
 import pytest
-import torch
 
 from benchmark.loaders.scans import (ScanSequence, find_scan_sequences, parse_scan_data, scan_data_spec,
                                      to_harness_frame)
