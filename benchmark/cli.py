@@ -95,6 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=None, help="override the split's seed")
     b.add_argument("--rebuild", action="store_true")
     b.set_defaults(func=_cmd_data_build)
+    from benchmark.synthetic.scan_set import add_make_scans_command
+
+    add_make_scans_command(dsub)
 
     p = sub.add_parser("perf", help="speed of the Chamfer paths and the body skinning, measured side by side",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)

@@ -93,6 +93,7 @@ def _cmd_run(args) -> int:
 
 def _run_locked(args, spec, device, profile_name, profile, priors, weights, out) -> int:
     from benchmark.body import get_body
+    from benchmark.loaders.scans import scan_data_spec
     from benchmark.protocols.table_run import run_table
 
     print(f"table {args.table} (protocol v{spec['protocol_version']}), profile {profile_name!r}: {profile['description']}")
@@ -101,7 +102,7 @@ def _run_locked(args, spec, device, profile_name, profile, priors, weights, out)
     result = run_table(
         spec, profile, priors=priors, body=body, device=device, seed=args.seed,
         out_dir=out, resume=args.resume, size=args.size, weights=weights,
-        data=args.data, backend=args.backend,
+        data=scan_data_spec(args.data, args.up, args.units), backend=args.backend,
     )
     print()
     print(result["markdown"])
@@ -247,7 +248,10 @@ def _cmd_compare(args) -> int:
 
 
 def add_run_commands(sub) -> None:
+    from benchmark.complete import add_complete_command
+
     fmt = argparse.ArgumentDefaultsHelpFormatter
+    add_complete_command(sub)
     p = sub.add_parser("run", help="run a table (e.g. table1) for some priors", formatter_class=fmt)
     p.add_argument("table")
     p.add_argument("--prior", action="append", help="prior name (repeatable); default: the table spec's default_priors (python -m benchmark list)")
@@ -259,7 +263,10 @@ def add_run_commands(sub) -> None:
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded", help="prior size; paper needs --weights")
     p.add_argument("--weights", action="append", metavar="PRIOR=PATH", help="official checkpoint for a prior")
     p.add_argument("--body", default="anny", help="body model: anny | smpl | smplh | smplx[=PATH[:gender]]")
-    p.add_argument("--data", default=None, help="motion data: default synthetic test split; or a folder of harness/AMASS .npz files")
+    p.add_argument("--data", default=None, help="motion data: default synthetic test split; or a folder of harness/AMASS .npz files; "
+                   "or scans=DIR, captured scans (one folder per sequence, table1 only)")
+    p.add_argument("--up", choices=["y", "z"], default=None, help="--data scans=DIR: the captures' up axis (default y)")
+    p.add_argument("--units", choices=["m", "cm", "mm"], default=None, help="--data scans=DIR: the captures' units (default m)")
     p.add_argument("--backend", choices=["local"], default="local", help="execution backend (a Ray backend is planned)")
     p.set_defaults(func=_cmd_run)
 

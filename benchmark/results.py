@@ -632,7 +632,10 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
         if len(have) < len(seqs):
             out[name] = None
             out[f"{name}_std"] = None
-            metric_na[name] = (f"not reported: no sequence has {key!r}" if not have
+            given = list(dict.fromkeys(row["na"][key] for row in seqs
+                                       if key not in row["sums"] and key in (row.get("na") or {})))
+            metric_na[name] = ("; ".join(given) if given and not have
+                               else f"not reported: no sequence has {key!r}" if not have
                                else f"incomplete: reported for {len(have)} of {len(seqs)} sequences")
             continue
         total = math.fsum(row["sums"][key] for row in seqs)

@@ -17,6 +17,8 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
 
         motions = build_split("test")
         by_id = {m.source: m for m in motions}
+    elif data.startswith("scans="):
+        raise ValueError(f"--data {data}: captured scans are read by the completion protocol (table1) only")
     else:
         from benchmark.loaders.amass import load_amass
         from benchmark.motion import Motion
