@@ -13,7 +13,8 @@ DATASETS = {
     "synthetic:val": "embedded, procedural: validation split for the embedded priors",
     "amass": "user data: AMASS .npz (SMPL-H / SMPL-X), --data amass=/path (datasets/amass.md)",
     "bvh": "user data: BVH (CMU conversion), converted with `python -m benchmark data convert`",
-    "scans": "user data: folder of per-frame PLY/OBJ/NPZ point clouds + timestamps",
+    "scans": "user data: captured point clouds, one folder per sequence (per-frame PLY/OBJ/NPZ + timestamps.txt): "
+             "run table1 --data scans=DIR [--up z] [--units mm]; complete DIR/SEQ --prior NAME",
 }
 
 

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 import sys
+import traceback
 
 
 def _cmd_list(args) -> int:
@@ -34,8 +36,14 @@ def _cmd_list(args) -> int:
 def _cmd_data_convert(args) -> int:
     from benchmark.loaders.convert import convert
 
-    motion = convert(args.input, args.out, fps=args.fps, overwrite=args.force)
-    print(f"wrote {args.out}: {motion.num_frames} frames, {motion.duration:.2f} s, {motion.fps:.1f} fps ({motion.source})")
+    body = None
+    if args.body:
+        from benchmark.body import get_body
+
+        body = get_body(args.body)
+    motion = convert(args.input, args.out, fps=args.fps, overwrite=args.force, body=body)
+    print(f"wrote {args.out}: {motion.num_frames} frames, {motion.duration:.2f} s, {motion.fps:.1f} fps ({motion.source})"
+          + (f", shape for body {body.name} ({body.shape_dim} parameters)" if body is not None else ""))
     return 0
 
 
@@ -49,9 +57,10 @@ def _cmd_data_build(args) -> int:
 
 
 def _cmd_perf(args) -> int:
+    from benchmark.cli_run import _device
     from benchmark.perf import run_perf
 
-    run_perf(device=args.device, quick=not args.full, out=args.out, parts=args.only)
+    run_perf(device=_device(args.device), quick=not args.full, out=args.out, parts=args.only)
     return 0
 
 
@@ -61,7 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Reference benchmark harness for human motion priors.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging (and tracebacks on errors)")
+    parser.add_argument("--debug", action="store_true", help="print the traceback of an error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("list", help="tables, priors, datasets, body models, profiles")
@@ -76,6 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True, help="output .npz (never overwritten without --force)")
     c.add_argument("--fps", type=float, default=None, help="resample to this rate (default: keep the source rate)")
     c.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    c.add_argument("--body", default=None, help="store the motion's shape for this body model (anny | smpl | smplh | "
+                   "smplx[=PATH[:gender]]): SMPL betas cut or zero-padded to the model's, another body's shape dropped")
     c.set_defaults(func=_cmd_data_convert)
     b = dsub.add_parser("build", help="generate (or check the cache of) a synthetic split",
                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -83,6 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=None, help="override the split's seed")
     b.add_argument("--rebuild", action="store_true")
     b.set_defaults(func=_cmd_data_build)
+    from benchmark.synthetic.scan_set import add_make_scans_command
+
+    add_make_scans_command(dsub)
 
     p = sub.add_parser("perf", help="speed of the hot paths (Chamfer, point-to-surface, evaluation, skinning, fit "
                                     "steps) against the baselines a user would pick, measured side by side",
@@ -100,15 +115,52 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# exception types whose message the harness writes itself (file, field, fix): printed as they are
+_OWN_ERRORS = (ValueError, FileNotFoundError, FileExistsError, KeyError, ImportError)
+
+
+def error_message(exc: BaseException) -> str:
+    """The text after ``error:`` for an exception: its message (a KeyError's without the quotes
+    ``str()`` adds); an exception type the harness does not raise itself is named, and an OSError
+    keeps the file it is about."""
+    if isinstance(exc, KeyError) and len(exc.args) == 1 and isinstance(exc.args[0], str) and " " in exc.args[0]:
+        text = exc.args[0]
+    elif isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        text = f"{exc.filename}: {exc.strerror}"
+        if isinstance(exc, PermissionError):
+            text += "; fix the permissions or choose another path"
+        elif exc.errno == errno.ENOSPC:
+            text += "; free some space or choose another folder"
+    else:
+        text = str(exc).strip()
+    if not (_is_own(exc) and text):
+        text = f"{type(exc).__name__}: {text or 'no message'}"
+    return text
+
+
+def _is_own(exc: BaseException) -> bool:
+    """An error whose message already names the file / field / fix: printed without its type."""
+    return isinstance(exc, _OWN_ERRORS) or (isinstance(exc, OSError) and exc.filename is not None and bool(exc.strerror))
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    debug = bool(args.verbose or args.debug)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else 2
     try:
         return int(args.func(args) or 0)
-    except (FileNotFoundError, FileExistsError, ValueError, KeyError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # every error is one line naming the file / field / fix; --debug shows where
+        if debug:
+            traceback.print_exc()
+        text = error_message(exc)
+        if not debug and not _is_own(exc):
+            text += " (run with --debug for the traceback)"
+        print(f"error: {text}", file=sys.stderr)
         return 2

@@ -20,12 +20,25 @@ def default_priors(spec: dict) -> list[str]:
 
 
 def _device(name: str | None) -> str:
+    """The device to run on: ``None`` picks cuda when available; otherwise ``cpu``, ``cuda`` or
+    ``cuda:N``, checked here so that a wrong name fails before any work."""
     import torch
 
     if name is None:
         return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError("--device cuda requested but no CUDA device is available (torch.cuda.is_available() is False)")
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, ValueError, TypeError):
+        raise ValueError(f"--device {name!r}: not a device name; use cpu, cuda or cuda:N") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"--device {name!r}: the harness runs on cpu or cuda (cuda:N), not {dev.type!r}")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"--device {name}: no CUDA device is available on this machine "
+                             "(torch.cuda.is_available() is False); use --device cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s) "
+                             f"(cuda:0..cuda:{torch.cuda.device_count() - 1})")
     return name
 
 
@@ -39,22 +52,57 @@ def _parse_pairs(items, what: str) -> dict:
     return out
 
 
-def _cmd_run(args) -> int:
-    from benchmark.body import get_body
-    from benchmark.catalog import get_profile, load_table_spec
-    from benchmark.protocols.table_run import run_table
+def _check_data_arg(data: str | None) -> None:
+    if data is None:
+        return
+    root = Path(data.split("=", 1)[-1]).expanduser()
+    if not root.exists():
+        raise FileNotFoundError(f"--data {data}: no such file or folder; give a folder of harness/AMASS .npz files "
+                                "(or one file), or leave --data out for the synthetic test split")
 
+
+def _cmd_run(args) -> int:
+    from benchmark.catalog import get_profile, load_table_spec
+    from benchmark.outdir import OutDirLock, check_out_dir
+    from benchmark.registry import get_prior_class
+
+    # everything a user can get wrong is checked here, before the body, data or any prior loads
     spec = load_table_spec(args.table)
     device = _device(args.device)
     profile_name = args.profile or ("full" if device.startswith("cuda") else "quick")
     profile = get_profile(profile_name, table=spec["name"])
+    out = check_out_dir(args.out)  # cheap, and the costliest mistake to find late: first
+    priors = args.prior or default_priors(spec)
+    for name in priors:
+        get_prior_class(name)
+    weights = _parse_pairs(args.weights, "--weights")
+    unknown = sorted(set(weights) - set(priors))
+    if unknown:
+        raise ValueError(f"--weights given for prior(s) {unknown} that are not being run ({', '.join(priors)}); "
+                         "add them with --prior NAME or drop those --weights")
+    for name, path in weights.items():
+        if not Path(path.split(",")[0]).expanduser().exists():
+            raise FileNotFoundError(f"--weights {name}={path}: no such file or folder")
+    from benchmark.body import parse_body_spec
+
+    parse_body_spec(args.body)
+    _check_data_arg(args.data)
+    with OutDirLock(out, command="python -m benchmark " + " ".join(sys.argv[1:])):
+        return _run_locked(args, spec, device, profile_name, profile, priors, weights, out)
+
+
+def _run_locked(args, spec, device, profile_name, profile, priors, weights, out) -> int:
+    from benchmark.body import get_body
+    from benchmark.loaders.scans import scan_data_spec
+    from benchmark.protocols.table_run import run_table
+
     print(f"table {args.table} (protocol v{spec['protocol_version']}), profile {profile_name!r}: {profile['description']}")
-    print(f"device {device}, seed {args.seed}, output {args.out}")
+    print(f"device {device}, seed {args.seed}, output {out}")
     body = get_body(args.body, device=device)
     result = run_table(
-        spec, profile, priors=args.prior or default_priors(spec), body=body, device=device, seed=args.seed,
-        out_dir=Path(args.out), resume=args.resume, size=args.size, weights=_parse_pairs(args.weights, "--weights"),
-        data=args.data, backend=args.backend,
+        spec, profile, priors=priors, body=body, device=device, seed=args.seed,
+        out_dir=out, resume=args.resume, size=args.size, weights=weights,
+        data=scan_data_spec(args.data, args.up, args.units), backend=args.backend,
     )
     print()
     print(result["markdown"])
@@ -93,9 +141,28 @@ def _print_counts(module, note: str = "") -> None:
         print(f"  {name.ljust(width)}  {n:>12,}  (trainable {t:,})")
 
 
+def describe_body(spec: str) -> str:
+    """A body model in a few lines: kind, file, vertices, faces, joints, shape parameters."""
+    from benchmark.body import get_body
+
+    body = get_body(spec)
+    source = getattr(body, "source_path", None)
+    file_joints = getattr(body, "num_file_joints", None)
+    lines = [f"body {body.name}" + (f" from {source}" if source else " (embedded)"),
+             f"  vertices {body.num_vertices:,}, faces {int(body.faces.shape[0]):,}, joints driven 22"
+             + (f" (file: {file_joints})" if file_joints else "") + f", shape parameters {body.shape_dim}"]
+    return "\n".join(lines)
+
+
 def _cmd_describe(args) -> int:
     from benchmark.registry import get_prior_class
 
+    if args.body:
+        print(describe_body(args.body))
+        if args.name is None:
+            return 0
+    elif args.name is None:
+        raise ValueError("describe needs a prior NAME (python -m benchmark list priors) or --body KIND")
     cls = get_prior_class(args.name)
     paper_network = getattr(cls, "paper_network", None)
     if args.size == "paper" and args.weights is None and paper_network is not None:
@@ -114,6 +181,9 @@ def _cmd_describe(args) -> int:
 def _cmd_check_prior(args) -> int:
     from benchmark.conformance import check_prior
 
+    # input errors (an unknown prior, a weights file torch cannot read) are errors, exit 2, not a
+    # conformance FAIL: construct once up front
+    make_adapter(args.name, size=args.size, weights=args.weights, device="cpu")
     ok = check_prior(args.name, size=args.size, weights=args.weights)
     return 0 if ok else 1
 
@@ -133,7 +203,16 @@ def _cmd_train(args) -> int:
 def _cmd_export_onnx(args) -> int:
     from benchmark.export_onnx import ParityError, export_onnx, sidecar_path
 
+    from benchmark.export_onnx import require_onnx_packages
+    from benchmark.outdir import check_out_dir
+
     out = Path(args.out) if args.out else Path("exports") / f"{args.name}.{args.size}.onnx"
+    require_onnx_packages()
+    if out.suffix != ".onnx":
+        raise ValueError(f"--out {out}: the output must end in .onnx (its record is written beside it as .json)")
+    if out.exists() and not args.force:
+        raise FileExistsError(f"{out} exists: pass --force to overwrite it, or --out FILE to write elsewhere")
+    check_out_dir(out.parent, min_free_bytes=1 << 20, what="the folder of --out")
     adapter = make_adapter(args.name, size=args.size, weights=args.weights, device="cpu")
     try:
         record = export_onnx(adapter, out, opset=args.opset, overwrite=args.force, check=not args.no_check)
@@ -169,7 +248,10 @@ def _cmd_compare(args) -> int:
 
 
 def add_run_commands(sub) -> None:
+    from benchmark.complete import add_complete_command
+
     fmt = argparse.ArgumentDefaultsHelpFormatter
+    add_complete_command(sub)
     p = sub.add_parser("run", help="run a table (e.g. table1) for some priors", formatter_class=fmt)
     p.add_argument("table")
     p.add_argument("--prior", action="append", help="prior name (repeatable); default: the table spec's default_priors (python -m benchmark list)")
@@ -181,15 +263,19 @@ def add_run_commands(sub) -> None:
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded", help="prior size; paper needs --weights")
     p.add_argument("--weights", action="append", metavar="PRIOR=PATH", help="official checkpoint for a prior")
     p.add_argument("--body", default="anny", help="body model: anny | smpl | smplh | smplx[=PATH[:gender]]")
-    p.add_argument("--data", default=None, help="motion data: default synthetic test split; or a folder of harness/AMASS .npz files")
+    p.add_argument("--data", default=None, help="motion data: default synthetic test split; or a folder of harness/AMASS .npz files; "
+                   "or scans=DIR, captured scans (one folder per sequence, table1 only)")
+    p.add_argument("--up", choices=["y", "z"], default=None, help="--data scans=DIR: the captures' up axis (default y)")
+    p.add_argument("--units", choices=["m", "cm", "mm"], default=None, help="--data scans=DIR: the captures' units (default m)")
     p.add_argument("--backend", choices=["local"], default="local", help="execution backend (a Ray backend is planned)")
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("describe", help="architecture summary and parameter counts of a prior (--size paper without --weights: "
                        "the paper-size network with random weights)", formatter_class=fmt)
-    p.add_argument("name")
+    p.add_argument("name", nargs="?", default=None, help="a prior (python -m benchmark list priors)")
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
     p.add_argument("--weights", default=None)
+    p.add_argument("--body", default=None, help="also describe a body model: anny | smpl | smplh | smplx[=PATH[:gender]]")
     p.set_defaults(func=_cmd_describe)
 
     p = sub.add_parser("check-prior", help="conformance kit: run an adapter through a tiny table", formatter_class=fmt)

@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 from typing import Mapping, Sequence, TextIO
 
-from benchmark.results import canonical_json
+from benchmark.results import TABLE_FORMAT_VERSION, canonical_json
 from benchmark.writers import cell_label
 
 # unit suffix -> default tolerance, in that unit
@@ -30,6 +30,7 @@ MUST_MATCH = ("table", "protocol_version", "profile")
 # table fields whose difference is reported as a note
 NOTE_IF_DIFFERENT = ("seed", "device", "profile_sizes", "data")
 TABLE_FIELDS = ("table", "protocol_version", "profile", "grid", "metrics", "rows")
+KNOWN_FORMAT_VERSIONS = frozenset({TABLE_FORMAT_VERSION})
 FAILING = {"out of tolerance", "missing in A", "missing in B", "n/a mismatch", "no tolerance", "mismatch"}
 
 
@@ -66,11 +67,30 @@ def parse_tolerances(tol_args: Sequence[str] | None) -> dict[str, float]:
 
 
 def _check_table(table, label: str) -> None:
+    """Refuse what is not a table JSON this version can read, naming the file and the field."""
     if not isinstance(table, Mapping):
         raise ValueError(f"{label}: not a table JSON (expected an object)")
     missing = [k for k in TABLE_FIELDS if k not in table]
     if missing:
         raise ValueError(f"{label}: not a table JSON, field(s) {missing} missing (write it with `python -m benchmark run`)")
+    version = table.get("format_version")
+    if version is not None and (not isinstance(version, int) or isinstance(version, bool) or version not in KNOWN_FORMAT_VERSIONS):
+        raise ValueError(f"{label}: field 'format_version' is {version!r}; this harness reads table format version(s) "
+                         f"{sorted(KNOWN_FORMAT_VERSIONS)}. Compare it with the harness version that wrote it, or rerun "
+                         "the table with this one")
+    if not isinstance(table["grid"], Mapping):
+        raise ValueError(f"{label}: field 'grid' must be an object (axis -> values), got {type(table['grid']).__name__}")
+    if not isinstance(table["metrics"], list) or not all(isinstance(m, Mapping) and isinstance(m.get("name"), str)
+                                                         for m in table["metrics"]):
+        raise ValueError(f"{label}: field 'metrics' must be a list of objects with a 'name'")
+    if not isinstance(table["rows"], list):
+        raise ValueError(f"{label}: field 'rows' must be a list of rows")
+    for i, row in enumerate(table["rows"]):
+        if not isinstance(row, Mapping) or not isinstance(row.get("prior"), str) or not isinstance(row.get("cells"), list):
+            raise ValueError(f"{label}: rows[{i}] must be an object with 'prior' (a string) and 'cells' (a list)")
+        for j, cell in enumerate(row["cells"]):
+            if not isinstance(cell, Mapping):
+                raise ValueError(f"{label}: rows[{i}] ({row['prior']}) cells[{j}] must be an object")
 
 
 def _index(table: Mapping) -> dict[tuple[str, str], tuple[dict, Mapping]]:
@@ -83,8 +103,9 @@ def _index(table: Mapping) -> dict[tuple[str, str], tuple[dict, Mapping]]:
     return out
 
 
-def _value(cell: Mapping, metric: str) -> tuple[float | None, str | None, bool]:
-    """(value, n/a reason, metric present in the cell)."""
+def _value(cell: Mapping, metric: str, where: str = "") -> tuple[float | None, str | None, bool]:
+    """(value, n/a reason, metric present in the cell). A value that is not a finite number
+    raises ValueError naming ``where`` (file, prior, cell) and the metric."""
     if cell.get("na_reason"):
         return None, cell["na_reason"], True
     if metric not in cell:
@@ -92,10 +113,15 @@ def _value(cell: Mapping, metric: str) -> tuple[float | None, str | None, bool]:
     if cell[metric] is None:
         base = metric[:-4] if metric.endswith("_std") else metric
         return None, (cell.get("metric_na") or {}).get(base, "no value"), True
-    return float(cell[metric]), None, True
+    value = cell[metric]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{where}: metric {metric!r} is {value!r}, not a finite number (or null with its reason in "
+                         "'metric_na'); the file was edited or written by another tool: rerun the table")
+    return float(value), None, True
 
 
-def compare_tables(a: Mapping, b: Mapping, tolerances: Mapping[str, float] | None = None) -> tuple[bool, list[dict]]:
+def compare_tables(a: Mapping, b: Mapping, tolerances: Mapping[str, float] | None = None,
+                   labels: tuple[str, str] = ("A", "B")) -> tuple[bool, list[dict]]:
     """Compare table JSONs ``a`` (reference) and ``b`` (new).
 
     tolerances: metric name -> largest allowed ``|b - a|`` in the metric's unit; metrics not named
@@ -108,8 +134,8 @@ def compare_tables(a: Mapping, b: Mapping, tolerances: Mapping[str, float] | Non
     ``b``, ``diff`` (b - a), ``tol``, ``input`` (``same`` / ``changed`` / None: the cells' input
     fingerprints) and ``note`` (n/a reasons).
     """
-    _check_table(a, "A")
-    _check_table(b, "B")
+    _check_table(a, labels[0])
+    _check_table(b, labels[1])
     tolerances = dict(tolerances or {})
     rows: list[dict] = []
     for field in MUST_MATCH:
@@ -145,8 +171,9 @@ def compare_tables(a: Mapping, b: Mapping, tolerances: Mapping[str, float] | Non
                 row["status"] = "missing in B" if cb is None else "missing in A"
                 rows.append(row)
                 continue
-            va, ra, pa = _value(ca, metric)
-            vb, rb, pb = _value(cb, metric)
+            where = cell_label(coords, list(coords)) if coords else "(no grid)"
+            va, ra, pa = _value(ca, metric, f"{labels[0]}: prior {prior!r}, cell {where}")
+            vb, rb, pb = _value(cb, metric, f"{labels[1]}: prior {prior!r}, cell {where}")
             row["a"], row["b"] = va, vb
             if not pa or not pb:
                 row["status"] = "missing in A" if not pa else "missing in B"
@@ -209,12 +236,16 @@ def format_report(ok: bool, rows: Sequence[Mapping], label_a: str = "A", label_b
 def load_table_json(path: str | Path) -> dict:
     """Read a table JSON, with errors that name the file."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; give the table JSON in it (e.g. {path / 'table1.json'})")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such table JSON")
     try:
         table = json.loads(path.read_text(encoding="utf-8"))
     except ValueError as exc:
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read it ({exc.strerror or exc})") from None
     _check_table(table, str(path))
     return table
 
@@ -226,6 +257,6 @@ def main_compare(path_a: str | Path, path_b: str | Path, tol_args: Sequence[str]
     a message that names them."""
     tolerances = parse_tolerances(tol_args)
     a, b = load_table_json(path_a), load_table_json(path_b)
-    ok, rows = compare_tables(a, b, tolerances)
+    ok, rows = compare_tables(a, b, tolerances, labels=(str(path_a), str(path_b)))
     print(format_report(ok, rows, str(path_a), str(path_b), only_problems=only_problems), end="", file=out or sys.stdout)
     return 0 if ok else 1

@@ -249,6 +249,29 @@ def _pin_static_dims(path: Path, spec, example_outputs: tuple) -> None:
     onnx.save(model, str(path))
 
 
+class MissingPackageError(ImportError):
+    """A package export-onnx needs is not installed (the message says how to install it)."""
+
+
+def require_onnx_packages() -> None:
+    """Raise :class:`MissingPackageError` naming each missing package and the install command.
+    ``onnx`` and ``onnxruntime`` are normal dependencies (``pip install -e .`` brings them); an
+    environment made otherwise may lack them."""
+    import importlib
+
+    missing = []
+    for name, pin in (("onnx", "onnx>=1.15"), ("onnxruntime", "onnxruntime>=1.16")):
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            missing.append((name, pin))
+    if missing:
+        names = " and ".join(repr(n) for n, _ in missing)
+        raise MissingPackageError(f"export-onnx needs the package(s) {names}, not installed in this environment; "
+                                  f"install them with: pip install {' '.join(repr(p) for _, p in missing)} "
+                                  "(or reinstall the project: pip install -e .)")
+
+
 def export_onnx(
     adapter,
     path: str | Path,
@@ -267,6 +290,7 @@ def export_onnx(
     the prior has no exportable decoder and FileExistsError when ``path`` or its record exists and
     ``overwrite`` is False. Returns the record (also written to ``sidecar_path(path)``).
     """
+    require_onnx_packages()
     import onnx
     import onnxruntime as ort
 
@@ -275,6 +299,11 @@ def export_onnx(
     path = Path(path)
     if path.suffix != ".onnx":
         raise ValueError(f"ONNX output file must end in .onnx (its record is written beside it as .json), got {path}")
+    if path.is_dir():
+        raise ValueError(f"--out {path}: is a folder; give the output file, e.g. {path / 'decoder.onnx'}")
+    from benchmark.outdir import check_out_dir
+
+    check_out_dir(path.parent, min_free_bytes=1 << 20, what="the folder of --out")
     record_path = sidecar_path(path)
     spec = get_spec(adapter)
     if not overwrite:

@@ -9,8 +9,14 @@ same group (``pyproject.toml``), exactly like a third-party package would.
 from __future__ import annotations
 
 import difflib
+import hashlib
 import importlib
 import logging
+import os
+import pickle
+import sys
+import zipfile
+from pathlib import Path
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 
@@ -97,9 +103,85 @@ def prior_names() -> list[str]:
     return sorted(registry())
 
 
+class WeightsFileError(ValueError):
+    """A weights file that torch cannot read (empty, truncated, not a checkpoint)."""
+
+
+# what torch.load raises on a file that is not a readable checkpoint
+_LOAD_ERRORS = (EOFError, pickle.UnpicklingError, zipfile.BadZipFile, RuntimeError, OSError, KeyError, ValueError,
+                UnicodeDecodeError, AttributeError, IndexError, TypeError)
+
+
+def _torch_load_file(exc: BaseException) -> str | None:
+    """The file a failing ``torch.load`` was reading, when ``exc`` was raised inside it."""
+    tb = exc.__traceback__
+    found = None
+    while tb is not None:
+        frame = tb.tb_frame
+        if frame.f_code.co_name == "load" and frame.f_code.co_filename.replace("\\", "/").endswith("torch/serialization.py"):
+            f = frame.f_locals.get("f")
+            found = str(f) if isinstance(f, (str, os.PathLike)) else getattr(f, "name", None) or "(a file object)"
+        tb = tb.tb_next
+    return found
+
+
+def _embedded_weights_guess(cls) -> str | None:
+    module = sys.modules.get(getattr(cls, "__module__", ""), None)
+    path = getattr(module, "DEFAULT_WEIGHTS", None)
+    return str(path) if path else None
+
+
+def weights_files(adapter) -> list[Path]:
+    """The weights files an adapter read (``adapter.weights_path``: one path or several joined by
+    commas), those that exist."""
+    raw = getattr(adapter, "weights_path", None)
+    if not raw:
+        return []
+    parts = raw if isinstance(raw, (list, tuple)) else str(raw).split(",")
+    return [Path(p) for p in parts if str(p).strip() and Path(str(p).strip()).is_file()]
+
+
+def weights_content_sha256(adapter) -> str | None:
+    """sha256 over the contents of :func:`weights_files` (None when the adapter reads none). A
+    folder given as weights is hashed file by file (sorted)."""
+    files = weights_files(adapter)
+    raw = getattr(adapter, "weights_path", None)
+    if not files and raw and not isinstance(raw, (list, tuple)) and Path(str(raw)).is_dir():
+        files = sorted(p for p in Path(str(raw)).rglob("*") if p.is_file())
+    if not files:
+        return None
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.name.encode() + b"\0")
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
 def make_adapter(name: str, size: str = "embedded", weights: str | None = None, device: str = "cpu"):
     """Construct the registered prior ``name`` (``size``: "embedded" or "paper"; ``weights``: a
-    checkpoint path or None for the embedded weights), moved to ``device`` and in eval mode."""
+    checkpoint path or None for the embedded weights), moved to ``device`` and in eval mode.
+
+    A weights file that ``torch.load`` cannot read (empty, truncated, a text file...) raises
+    :class:`WeightsFileError` naming the file and the fix, instead of torch's bare EOFError /
+    UnpicklingError / RuntimeError."""
     cls = get_prior_class(name)
-    adapter = cls(size=size, weights=weights, device=device)
+    try:
+        adapter = cls(size=size, weights=weights, device=device)
+    except _LOAD_ERRORS as exc:
+        file, cause = None, exc
+        while cause is not None and file is None:  # raw, or re-raised by the adapter ``from`` torch's error
+            file = _torch_load_file(cause)
+            if file is None:
+                cause = cause.__cause__
+        if file is None:
+            raise
+        exc = cause
+        embedded = weights is None and size == "embedded"
+        fix = (f"restore it (git checkout -- {file}) or retrain it (python -m benchmark train {name})" if embedded else
+               "check the file: download it again, or pass the right file with --weights")
+        detail = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else "no message"
+        raise WeightsFileError(f"prior {name!r}: weights file {file} is not a readable torch checkpoint "
+                               f"(empty, truncated or another format: {type(exc).__name__}: {detail}); fix: {fix}") from exc
     return adapter.to(device).eval()

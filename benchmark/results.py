@@ -81,24 +81,39 @@ def derive_seed(table_seed: int, table: str, prior: str, cell: Mapping, batch_in
     return int.from_bytes(digest[:4], "big")
 
 
+def _umask() -> int:
+    """The process umask (read by setting and restoring it; there is no getter)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     """Write ``text`` to ``path`` atomically: a temp file in the same folder, fsync, ``os.replace``.
     A reader sees the old file or the new one, never a half-written one; on error the old file is
-    untouched and the temp file is removed."""
+    untouched and the temp file is removed. The file gets the mode a plain ``open()`` would give
+    (0666 minus the umask: 0644 by default), not mkstemp's private 0600."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        try:
+            os.fchmod(fd, 0o666 & ~_umask())
+        except (AttributeError, OSError):  # no fchmod (Windows): keep mkstemp's mode
+            pass
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
             fh.write(text)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
+            # a full disk or a quota says nothing about which file: name it
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
         raise
     _fsync_dir(path.parent)
     return path
@@ -250,6 +265,7 @@ def plan_units(
     seed: int,
     device: str,
     prior_info: Mapping[str, Mapping],
+    data_hashes: Mapping[str, str] | None = None,
 ) -> list[WorkUnit]:
     """Split a table run into work units: every prior x every cell x every batch.
 
@@ -263,6 +279,10 @@ def plan_units(
     prior_info: for every prior, a JSON-serialisable dict of what identifies its model (size,
         weights sha256...); it enters the spec hash so new weights invalidate stored results.
         Pass ``{}`` for a prior with nothing to identify.
+    data_hashes: sequence id -> content hash of the motion data a unit reads for it
+        (:func:`benchmark.protocols.table_run.motion_sha256`). When given, each unit's spec holds
+        ``"data": [hash per sequence of the batch]``, so a sequence whose file was replaced by
+        another motion under the same name invalidates the stored result.
 
     Returns units in prior-major, then grid, then batch order.
     """
@@ -293,6 +313,10 @@ def plan_units(
     if len(set(ids)) != len(ids):
         dup = sorted({s for s in ids if ids.count(s) > 1})
         raise ValueError(f"sequence ids repeat: {dup[:5]!r}")
+    if data_hashes is not None:
+        lost = [s for s in ids if not isinstance(data_hashes.get(s), str)]
+        if lost:
+            raise ValueError(f"data_hashes has no content hash for sequence(s) {lost[:5]!r}")
     batches = [ids[i : i + batch] for i in range(0, len(ids), batch)]
     sizes = profile_sizes(profile)
 
@@ -312,6 +336,8 @@ def plan_units(
                     "sequence_ids": list(batch_ids),
                     "seed": unit_seed,
                 }
+                if data_hashes is not None:
+                    spec["data"] = [data_hashes[s] for s in batch_ids]
                 units.append(WorkUnit(table=table, prior=prior, cell=dict(cell), sequence_ids=list(batch_ids),
                                       batch_index=b, seed=unit_seed, profile=profile["name"], device=device,
                                       spec=spec, spec_hash=sha256_json(spec)))
@@ -390,14 +416,41 @@ def validate_unit_result(result: Any, unit: WorkUnit | None = None, source: str 
     return result
 
 
+CHECKSUM_KEY = "checksum"
+
+
+def unit_checksum(record: Mapping) -> str:
+    """sha256 of a stored unit record's canonical JSON, without its own ``checksum`` field. The
+    runner stores it in the file and checks it before reuse: a file edited by hand (or damaged)
+    no longer matches and is moved aside instead of trusted."""
+    return sha256_json({k: v for k, v in record.items() if k != CHECKSUM_KEY})
+
+
+def with_checksum(record: Mapping) -> dict:
+    """``record`` plus its ``checksum`` field (:func:`unit_checksum`)."""
+    out = {k: v for k, v in record.items() if k != CHECKSUM_KEY}
+    out[CHECKSUM_KEY] = unit_checksum(out)
+    return out
+
+
+def checksum_problem(record: Mapping) -> str | None:
+    """Why a stored record's checksum does not vouch for it, or None when it matches."""
+    stored = record.get(CHECKSUM_KEY)
+    if not isinstance(stored, str):
+        return "no checksum (written by an older version, or edited)"
+    if stored != unit_checksum(record):
+        return "contents do not match the file's own checksum (edited or damaged)"
+    return None
+
+
 def unit_path(out_dir: str | os.PathLike, unit_id: str) -> Path:
     """Where a unit's result lives: ``<out_dir>/units/<unit_id>.json``."""
     return Path(out_dir) / "units" / f"{unit_id}.json"
 
 
 def load_unit_results(out_dir: str | os.PathLike, units: Iterable[WorkUnit]) -> list[dict]:
-    """The stored results of ``units`` that are done (file exists, spec hash matches, valid), in
-    plan order. Missing or stale ones are skipped (the derived cell then says it is incomplete)."""
+    """The stored results of ``units`` that are done (file exists, spec hash matches, valid, its
+    own checksum matches), in plan order. Missing or stale ones are skipped (the derived cell then says it is incomplete)."""
     found = []
     for unit in units:
         path = unit_path(out_dir, unit.unit_id)
@@ -406,6 +459,9 @@ def load_unit_results(out_dir: str | os.PathLike, units: Iterable[WorkUnit]) -> 
         try:
             result = json.loads(path.read_text(encoding="utf-8"))
             validate_unit_result(result, unit, source=str(path))
+            problem = checksum_problem(result)
+            if problem:
+                raise ValueError(problem)
         except (ValueError, OSError) as exc:
             log.warning("skipping %s: %s", path, exc)
             continue
@@ -417,7 +473,8 @@ def load_unit_results(out_dir: str | os.PathLike, units: Iterable[WorkUnit]) -> 
 # Derivation: unit results -> the public table
 # --------------------------------------------------------------------------------------------
 
-_META_KEYS = {"units", "profile", "seed", "device", "priors", "provenance", "data", "body", "sequences", "wall_s"}
+_META_KEYS = {"units", "profile", "seed", "device", "priors", "provenance", "data", "body", "sequences", "wall_s",
+              "resume"}
 _META_NEEDS = {
     "units": "the planned WorkUnit list from plan_units (it says how many units each cell needs)",
     "profile": "the profile dict with its name (catalog.get_profile)",
@@ -439,7 +496,8 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
         appearance in ``units``), ``provenance`` (default:
         :func:`benchmark.provenance.collect_provenance`), ``data`` (what the test data was, e.g.
         ``"synthetic:test"``), ``body`` (the body model's name), ``sequences`` (the sequence ids
-        run), ``wall_s`` (the run's wall time). The table also records each prior's identity as
+        run), ``wall_s`` (the run's wall time), ``resume`` (what the runner did with stored unit
+        files: counts of reused / recomputed / moved aside; kept in ``provenance["resume"]``). The table also records each prior's identity as
         planned (``prior_info``: name, size, weights hash...).
 
     Each cell holds its grid coordinates, then per metric (unit in the name): the mean over all
@@ -507,6 +565,8 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
     }
     if meta.get("wall_s") is not None:
         provenance["timings"]["wall_s"] = float(meta["wall_s"])
+    if meta.get("resume") is not None:
+        provenance["resume"] = dict(meta["resume"])
 
     all_cells = [c for row in rows for c in row["cells"]]
     table = {
@@ -572,7 +632,10 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
         if len(have) < len(seqs):
             out[name] = None
             out[f"{name}_std"] = None
-            metric_na[name] = (f"not reported: no sequence has {key!r}" if not have
+            given = list(dict.fromkeys(row["na"][key] for row in seqs
+                                       if key not in row["sums"] and key in (row.get("na") or {})))
+            metric_na[name] = ("; ".join(given) if given and not have
+                               else f"not reported: no sequence has {key!r}" if not have
                                else f"incomplete: reported for {len(have)} of {len(seqs)} sequences")
             continue
         total = math.fsum(row["sums"][key] for row in seqs)

@@ -6,10 +6,17 @@ crash or a preempted node loses one unit, not the table.
 
 Resume policies:
 
-- ``"only-missing"`` (default): a unit whose file exists with the same spec hash is done and reused;
-  a file with another spec hash (the rules, profile sizes, prior weights, sequences or seed changed)
-  is moved aside to ``units/stale/<unit_id>.<old_hash[:8]>.json`` and the unit is rerun.
+- ``"only-missing"`` (default): a unit whose file exists with the same spec hash, is a valid result
+  and matches its own ``checksum`` (:func:`benchmark.results.unit_checksum`, written with it) is done
+  and reused. A file with another spec hash (the rules, profile sizes, the prior's weights -- by
+  content hash --, the sequences, the motion data they hold -- by content hash --, or the seed
+  changed), an invalid one, or one whose contents no longer match its checksum (edited by hand,
+  damaged) is moved aside to ``units/stale/<unit_id>.<old_hash[:8]>.json`` and the unit is rerun.
 - ``"never"``: every unit is rerun; existing files are moved aside the same way first.
+
+Before any unit runs, :func:`run_units` prints one line saying how many units it reuses, computes
+and moved aside (and why); the counts are in the :class:`RunReport` (the table run stores them in
+its provenance).
 
 Nothing is ever deleted: a stale name that is taken gets a ``.1``, ``.2``... suffix.
 
@@ -31,7 +38,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
-from benchmark.results import WorkUnit, atomic_write_json, plan_units, unit_path, validate_unit_result
+from benchmark.results import (
+    WorkUnit,
+    atomic_write_json,
+    checksum_problem,
+    plan_units,
+    unit_path,
+    validate_unit_result,
+    with_checksum,
+)
 
 __all__ = ["BACKENDS", "RESUME_POLICIES", "RunReport", "WorkUnit", "plan_units", "progress_enabled", "run_units"]
 
@@ -76,6 +91,7 @@ class RunReport:
     ran: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
     moved: list[Path] = field(default_factory=list)
+    moved_why: dict[str, str] = field(default_factory=dict)
     wall_s: float = 0.0
 
     @property
@@ -86,6 +102,15 @@ class RunReport:
         """Unpacks as ``results, failures = run_units(...)``: the done results (a list, plan
         order, ready for ``derive_table``) and the failures (unit_id -> message)."""
         return iter((list(self.results.values()), dict(self.failed)))
+
+    def resume_counts(self) -> dict:
+        """What happened to stored unit files: for the table's provenance."""
+        reasons: dict[str, int] = {}
+        for why in self.moved_why.values():
+            key = why.split(" (", 1)[0]
+            reasons[key] = reasons.get(key, 0) + 1
+        return {"reused": len(self.reused), "recomputed": len(self.ran) + len(self.failed), "ran": len(self.ran),
+                "failed": len(self.failed), "moved_aside": len(self.moved), "moved_aside_reasons": reasons}
 
     def summary(self) -> str:
         text = (f"{len(self.ran)} unit(s) run, {len(self.reused)} reused, {len(self.failed)} failed, "
@@ -126,12 +151,17 @@ def _read_stored(path: Path, unit: WorkUnit) -> tuple[dict | None, str | None, s
     except (OSError, ValueError) as exc:
         return None, None, f"unreadable ({exc})"
     old_hash = stored.get("spec_hash") if isinstance(stored, dict) else None
+    if not isinstance(old_hash, str):
+        old_hash = None
     if old_hash != unit.spec_hash:
-        return None, old_hash if isinstance(old_hash, str) else None, "spec hash differs"
+        return None, old_hash, "spec hash differs (its inputs, rules, sizes, weights or seed changed)"
     try:
         validate_unit_result(stored, unit, source=str(path))
     except ValueError as exc:
         return None, old_hash, f"invalid ({exc})"
+    problem = checksum_problem(stored)
+    if problem:
+        return None, old_hash, f"checksum mismatch ({problem})"
     return stored, old_hash, None
 
 
@@ -142,6 +172,7 @@ def run_units(
     resume: str = "only-missing",
     backend: str = "local",
     progress: bool | None = None,
+    announce: bool = True,
 ) -> RunReport:
     """Run ``units`` with ``execute``, storing each result as ``<out_dir>/units/<unit_id>.json``.
 
@@ -150,6 +181,7 @@ def run_units(
     resume: ``"only-missing"`` or ``"never"`` (see the module docstring).
     backend: a name in :data:`BACKENDS`.
     progress: tqdm bar; ``None``: only when stdout is a terminal.
+    announce: print the resume line (reused / to compute / moved aside) before running.
 
     A unit that raises is logged with its id and the traceback, nothing is stored for it, the
     others go on; the returned :class:`RunReport` lists it under ``failed`` (callers should exit
@@ -181,8 +213,15 @@ def run_units(
         target = move_aside(path, unit.unit_id, old_hash)
         report.moved.append(target)
         reason = "resume policy 'never'" if why is None else why
-        log.info("%s: stored result not reused (%s); moved to %s, rerunning", unit.unit_id, reason, target)
+        report.moved_why[unit.unit_id] = reason
+        log.log(logging.WARNING if why and why.startswith(("checksum", "invalid", "unreadable")) else logging.INFO,
+                "%s: stored result not reused (%s); moved to %s, rerunning", unit.unit_id, reason, target)
         todo.append(unit)
+    if announce:
+        counts = report.resume_counts()["moved_aside_reasons"]
+        why = f" ({', '.join(f'{n} {k}' for k, n in counts.items())})" if counts else ""
+        print(f"work units in {Path(out_dir) / 'units'}: {len(report.reused)} reused, {len(todo)} to compute, "
+              f"{len(report.moved)} stored file(s) moved aside to units/stale/{why}", flush=True)
 
     from tqdm import tqdm
 
@@ -196,6 +235,7 @@ def run_units(
                     validate_unit_result(result, unit, source=f"executor result for {unit.unit_id}")
                     record = dict(result)
                     record["spec"] = unit.spec
+                    record = with_checksum(record)
                     atomic_write_json(unit_path(out_dir, unit.unit_id), record)
                 except (ValueError, TypeError, OSError) as exc:
                     error = exc

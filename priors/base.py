@@ -132,6 +132,7 @@ class PriorAdapter(torch.nn.Module):
     has_encoder: bool = False
     sixd_layout: str | None = None  # "interleaved" (VPoser/Xu) or "columns" (HM-VAE), if it uses 6D
     constant_latents: tuple[str, ...] = ()  # latents entries the decoder reads but never optimises (no gradient)
+    frozen_network: str | None = None  # attribute holding the trained network, kept frozen and in eval mode
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__()
@@ -166,6 +167,20 @@ class PriorAdapter(torch.nn.Module):
         """
         raise NotImplementedError(f"prior {self.name!r} has no motion encoder")
 
+    def check_motion(self, rotations: torch.Tensor, trans: torch.Tensor | None, timestamps: torch.Tensor) -> None:
+        """Raise a ValueError naming the argument unless rotations are (B, T, 22, 3, 3), timestamps
+        (B, T) and trans (B, T, 3) or None: the shape check at the top of ``encode_motion``."""
+        where = f"{self.name}.encode_motion"
+        if rotations.dim() != 5 or rotations.shape[-3:] != (NUM_JOINTS, 3, 3):
+            raise ValueError(
+                f"{where}: rotations must be (B, T, {NUM_JOINTS}, 3, 3) local rotations, got {tuple(rotations.shape)}"
+            )
+        B, T = rotations.shape[:2]
+        if tuple(timestamps.shape) != (B, T):
+            raise ValueError(f"{where}: timestamps must be (B, T) = {(B, T)}, got {tuple(timestamps.shape)}")
+        if trans is not None and tuple(trans.shape) != (B, T, 3):
+            raise ValueError(f"{where}: trans must be (B, T, 3) = {(B, T, 3)}, got {tuple(trans.shape)}")
+
     def export_decoder(self) -> "ExportSpec":
         """The deterministic decode path (latents -> body parameters) as a plain module for ONNX.
 
@@ -173,6 +188,25 @@ class PriorAdapter(torch.nn.Module):
         dynamic batch dimension (dim 0 of every input and output).
         """
         raise NotImplementedError(f"prior {self.name!r} does not export its decoder")
+
+    # -- for adapters around a trained network ---------------------------------------------
+    def freeze_network(self, device: str | torch.device | None = None) -> None:
+        """Freeze the network named by ``frozen_network``: no gradients on its parameters, the
+        adapter moved to ``device`` (when given), the network in eval mode (no dropout, BatchNorm
+        running statistics). The protocols optimise latents only."""
+        net = getattr(self, self.frozen_network)
+        for p in net.parameters():
+            p.requires_grad_(False)
+        if device is not None:
+            self.to(device)
+        net.eval()
+
+    def train(self, mode: bool = True):
+        """``nn.Module.train``; a ``frozen_network`` stays in eval mode whatever ``mode`` is."""
+        super().train(mode)
+        if self.frozen_network is not None:
+            getattr(self, self.frozen_network).eval()
+        return self
 
     def describe(self) -> str:
         n = sum(p.numel() for p in self.parameters())

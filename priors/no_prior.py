@@ -79,16 +79,7 @@ class NoPrior(PriorAdapter):
         ``trans`` and ``timestamps`` are only checked for shape. Not a learned encoder, hence
         ``has_encoder = False`` (see the module docstring).
         """
-        if rotations.dim() != 5 or rotations.shape[-3:] != (NUM_JOINTS, 3, 3):
-            raise ValueError(
-                f"no-prior.encode_motion: rotations must be (B, T, {NUM_JOINTS}, 3, 3) local rotations, "
-                f"got {tuple(rotations.shape)}"
-            )
-        B, T = rotations.shape[:2]
-        if tuple(timestamps.shape) != (B, T):
-            raise ValueError(f"no-prior.encode_motion: timestamps must be (B, T) = {(B, T)}, got {tuple(timestamps.shape)}")
-        if trans is not None and tuple(trans.shape) != (B, T, 3):
-            raise ValueError(f"no-prior.encode_motion: trans must be (B, T, 3) = {(B, T, 3)}, got {tuple(trans.shape)}")
+        self.check_motion(rotations, trans, timestamps)
         pose = matrix_to_sixd(rotations[:, :, 1:].to(self._device), layout="interleaved")
         return {"pose": pose.detach().clone()}
 

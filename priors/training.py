@@ -301,6 +301,52 @@ def save_checkpoint(path: str | Path, state_dict: dict, config: dict) -> Path:
     return path
 
 
+def embedded_weights(name: str, weights: str | Path | None, default_weights: Path, otherwise: str = "") -> Path:
+    """The checkpoint a prior's ``size="embedded"`` loads: ``weights`` if given, else ``default_weights``.
+    When it is absent: FileNotFoundError naming the file, the command that trains it and ``otherwise``
+    (e.g. where the official weights are)."""
+    path = Path(weights) if weights is not None else default_weights
+    if not path.exists():
+        raise FileNotFoundError(f"embedded {name} weights not found: {path}. Train them with "
+                                f"`python -m benchmark train {name}`" + (f", {otherwise}" if otherwise else ""))
+    return path
+
+
+def embedded_out_dir(out_dir: str | Path | None, default_weights: Path, overwrite: bool) -> Path:
+    """The folder a prior's ``train_embedded`` writes to: ``out_dir``, or by default the folder of
+    ``default_weights``; refuses (FileExistsError) when it already holds that checkpoint and
+    ``overwrite`` is false."""
+    out = Path(out_dir) if out_dir is not None else default_weights.parent
+    target = out / default_weights.name
+    if target.exists() and not overwrite:
+        raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
+    return out
+
+
+def recipe_parser(description: str, default_weights: Path, steps: int):
+    """The command line every ``python -m priors.<name>.train`` shares: ``--out`` (default: the folder of
+    ``default_weights``), ``--steps``, ``--seed``, ``--force``; a recipe adds its own options to it."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--out", default=str(default_weights.parent), help="output folder (default: %(default)s)")
+    ap.add_argument("--steps", type=int, default=steps, help="training steps (default: %(default)s)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--force", action="store_true", help="overwrite existing weights")
+    return ap
+
+
+def parse_recipe_args(ap, default_weights: Path, argv: list[str] | None = None):
+    """Parse a :func:`recipe_parser` command line, turn on INFO logging and refuse to overwrite
+    existing weights without ``--force`` (exit with the reason)."""
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    try:
+        embedded_out_dir(args.out, default_weights, args.force)
+    except FileExistsError as exc:
+        raise SystemExit(str(exc)) from None
+    return args
+
 
 def save_trained(out_dir: str | Path, checkpoint_name: str, state_dict: dict, config: dict, record: dict) -> Path:
     """Write a trained model into ``out_dir``: the checkpoint (:func:`save_checkpoint`) and, beside it
@@ -332,6 +378,7 @@ def loop_record(result, *, steps: int, seed: int, lr: float, weight_decay: float
         "history": result.history,
         **environment_record(),
     }
+
 
 def environment_record() -> dict:
     """Library versions, host, date and git revision, for a training record."""

@@ -20,7 +20,8 @@ from benchmark.export_onnx import (
 )
 from priors.base import ExportSpec
 from priors.no_prior import NoPrior
-from priors.vposer import DEFAULT_WEIGHTS, VPoserSlerp
+from priors.vposer import VPoserSlerp
+from priors.vposer.checkpoint import DEFAULT_WEIGHTS
 
 
 @pytest.fixture(scope="module")

@@ -10,27 +10,24 @@ import torch
 from benchmark.rotations import sixd_to_matrix
 from priors import training
 from priors.base import FitBatch
-from priors.frequency_guided import (
-    DEFAULT_WEIGHTS,
+from priors.frequency_guided import FrequencyGuidedPrior
+from priors.frequency_guided.adapter import n_windows_for
+from priors.frequency_guided.checkpoint import DEFAULT_WEIGHTS, load_motion_prior_state, resolve_paper_weights
+from priors.frequency_guided.model import (
     PAPER_CONFIG,
     XU17_FROM_SMPL22,
     FrequencyGuidedNetwork,
-    FrequencyGuidedPrior,
     MotionPrior,
     dct_matrix,
     frequency_features,
     heading_angle,
-    load_motion_prior_state,
-    motion_prior_loss,
-    n_windows_for,
-    prepare_windows,
-    resolve_paper_weights,
-    train_frequency_guided,
     window_features,
     xu17_joints,
     yaw_matrix,
 )
-from priors.vposer_v1 import VPoserV1, load_vposer_v1_state, sixd_interleaved_to_matrix
+from priors.frequency_guided.train import motion_prior_loss, prepare_windows, train_frequency_guided
+from priors.vposer.checkpoint import load_vposer_v1_state
+from priors.vposer.model import VPoserV1, sixd_interleaved_to_matrix
 
 TINY_CONFIG = {
     "num_neurons": 32, "latent": 16, "latent_t": 8, "frames": 128, "dense_freq": True,

@@ -9,26 +9,25 @@ import torch
 
 from priors import training
 from priors.base import FitBatch
-from priors.motion_dvae import (
+from priors.motion_dvae import MotionDVAEPrior
+from priors.motion_dvae.checkpoint import load_official, load_state_strict
+from priors.motion_dvae.model import (
     EMBEDDED_CONFIG,
     PAPER_CONFIG,
     STATE_DIM,
     MotionDVAE,
-    MotionDVAEPrior,
     body_points,
     canonical_poses,
     canonicalise,
     heading,
-    load_official,
-    load_state_strict,
     motion_state,
     noisy_poses,
     pose_to_state,
     state_to_motion,
-    train_motion_dvae,
     uncanonicalise,
     unwrap_rotvec,
 )
+from priors.motion_dvae.train import train_motion_dvae
 
 TINY = {"z_dim": 8, "hidden": 64, "mlp_hidden": 64}
 REST = torch.tensor(training.SMPL_LIKE_REST_JOINTS)

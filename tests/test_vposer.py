@@ -13,15 +13,10 @@ import torch.nn.functional as F
 
 from priors import training
 from priors.base import FitBatch
-from priors.vposer import (
-    DEFAULT_WEIGHTS,
-    ContinousRotReprDecoder,
-    VPoser,
-    VPoserSlerp,
-    load_vposer_checkpoint,
-    resolve_checkpoint,
-    train_vposer,
-)
+from priors.vposer import VPoserSlerp
+from priors.vposer.checkpoint import DEFAULT_WEIGHTS, load_vposer_checkpoint, resolve_checkpoint
+from priors.vposer.model import ContinousRotReprDecoder, VPoser
+from priors.vposer.train import train_vposer
 
 PAPER_KEYS_26 = [
     f"encoder_net.1.{s}" for s in ("weight", "bias", "running_mean", "running_var", "num_batches_tracked")
@@ -285,7 +280,7 @@ def test_encode_poses_is_the_encoder_mean(small_weights):
 
 
 # -- the shipped embedded weights --------------------------------------------------------------
-@pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason=f"embedded weights {DEFAULT_WEIGHTS} absent: run priors.vposer.train_vposer")
+@pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason=f"embedded weights {DEFAULT_WEIGHTS} absent: run priors.vposer.train.train_vposer")
 def test_embedded_weights_load_decode_and_reconstruct():
     a = VPoserSlerp()  # size "embedded", priors/weights/vposer.pt
     assert a.checkpoint.format == "project" and a.checkpoint.ignored == []

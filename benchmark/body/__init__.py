@@ -43,7 +43,7 @@ def get_body(spec: str = "anny", device="cpu", num_betas: int = 10) -> BodyModel
         from benchmark.body.anny_body import load_anny_body
 
         return load_anny_body(device)
-    from benchmark.body.smpl import load_body
+    from benchmark.body.resolve import load_body
 
     return load_body(kind, gender=gender, path=path, num_betas=num_betas, device=device)
 

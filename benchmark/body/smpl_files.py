@@ -201,7 +201,14 @@ def read_model_keys(path: str | Path, keys=REQUIRED_KEYS) -> tuple[dict, list[st
         raise FileNotFoundError(f"body-model file {path} does not exist")
     suffix = path.suffix.lower()
     if suffix == ".npz":
-        with np.load(path, allow_pickle=False) as archive:
+        try:
+            archive = np.load(path, allow_pickle=False)
+        except Exception as exc:  # not a zip (or truncated): numpy's message names neither the file nor the fix
+            raise ValueError(f"{path}: not a readable .npz body-model file ({type(exc).__name__}); the file is "
+                             "truncated or not an .npz: download the model again") from None
+        if not hasattr(archive, "files"):
+            raise ValueError(f"{path}: holds a single array, not an .npz archive of named keys; download the model again")
+        with archive:
             found = list(archive.files)
             values = {}
             for key in keys:

@@ -107,6 +107,16 @@ def load_amass(
             "load the subject's *_poses.npz / *_stageii.npz sequences instead"
         )
 
+    if not has_pose:
+        hint = ""
+        if "pose" in data or "transl" in data:
+            hint = (" (keys 'pose' / 'transl' are not AMASS names: rename them to 'poses' (T, 156) and 'trans' (T, 3), "
+                    "or convert the file with the tool that wrote it)")
+        raise ValueError(
+            f"{path}: no pose data: an AMASS file holds 'poses' (T, 156 / 165 / 72 / 66) or 'root_orient' (T, 3) + "
+            f"'pose_body' (T, 63); keys present: {sorted(data)}{hint}"
+        )
+
     def need(key):
         if key not in data:
             raise KeyError(f"{path}: missing key {key!r} (keys present: {sorted(data)})")

@@ -58,15 +58,21 @@ def load_motion(path, fps: float | None = None) -> Motion:
     return motion.resample_fps(fps) if fps is not None else motion
 
 
-def convert(input_path, out_path, fps: float | None = None, overwrite: bool = False) -> Motion:
+def convert(input_path, out_path, fps: float | None = None, overwrite: bool = False, body=None) -> Motion:
     """Read ``input_path`` (format detected), optionally resample to ``fps``, write the harness
     ``.npz`` at ``out_path`` with :meth:`Motion.save`, and return the Motion.
 
-    Refuses to replace an existing ``out_path`` unless ``overwrite=True`` (CLI: ``--force``).
+    body: a body model (:func:`benchmark.body.get_body`): the motion's shape is stored for it (SMPL
+        betas cut or zero-padded to its shape count, another body's shape dropped).
+
+    Refuses to replace an existing ``out_path`` unless ``overwrite=True`` (CLI: ``--force``). The
+    output folder is checked (creatable, writable) before the input is read.
     """
     out_path = Path(out_path)
     if out_path.suffix != ".npz":
         raise ValueError(f"{out_path}: the output is a harness motion .npz; give a path ending in .npz")
+    if out_path.is_dir():
+        raise ValueError(f"--out {out_path}: is a folder; give the output file, e.g. {out_path / 'motion.npz'}")
     if out_path.exists() and not overwrite:
         raise FileExistsError(
             f"{out_path} already exists; refusing to overwrite it. Pass overwrite=True (CLI: --force) "
@@ -74,6 +80,17 @@ def convert(input_path, out_path, fps: float | None = None, overwrite: bool = Fa
         )
     if Path(input_path).resolve() == out_path.resolve():
         raise ValueError(f"{out_path}: output would replace the input file; choose another --out path")
+    detect_format(input_path)  # a wrong format is reported before the output folder is checked
+    if not Path(input_path).is_file():
+        raise FileNotFoundError(f"{input_path}: no such file")
+    from benchmark.outdir import check_out_dir
+
+    check_out_dir(out_path.parent if str(out_path.parent) else Path("."), min_free_bytes=1 << 20,
+                  what="the folder of --out")
     motion = load_motion(input_path, fps=fps)
+    if body is not None:
+        from benchmark.protocols.table_run import _shape_for_body
+
+        motion = _shape_for_body(motion, body)
     motion.save(out_path)
     return motion

@@ -199,3 +199,186 @@ def load_scan_folder(
         lengths=torch.tensor([counts], dtype=torch.long),
         timestamps=torch.from_numpy(ts)[None],
     )
+
+
+# ----------------------------------------------------------------------------------------------
+# Conventions (--up, --units), sanity checks, and scan roots (one folder per sequence)
+# ----------------------------------------------------------------------------------------------
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+UP_AXES = ("y", "z")
+# A standing adult is 1.4-2.1 m tall; a frame whose extent along the up axis, in metres after
+# the unit conversion, lies outside this range is almost surely in other units (error), unless
+# the subject is crouching or lying (the error says how to tell).
+PLAUSIBLE_HEIGHT_M = (0.3, 3.0)
+# z-up -> y-up, the same fixed rotation as the AMASS loader: (x, y, z) -> (x, z, -y).
+Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+# A timestamp interval more than this many times the median interval is reported as a gap.
+GAP_FACTOR = 1.5
+
+
+def to_harness_frame(points: np.ndarray, up: str = "y", units: str = "m") -> np.ndarray:
+    """(N, 3) points in the capture's convention -> metres, y up."""
+    if units not in UNITS:
+        raise ValueError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
+    if up not in UP_AXES:
+        raise ValueError(f"up axis must be one of {', '.join(UP_AXES)}, got {up!r}")
+    out = np.asarray(points, dtype=np.float64) * UNITS[units]
+    if up == "z":
+        out = out @ Z_UP_TO_Y_UP.T
+    return out
+
+
+def check_units(points_m: np.ndarray, path: Path, up: str, units: str) -> None:
+    """Error naming ``path`` when a frame (already converted to metres, y up) cannot be a person
+    in these units; a warning when its extent says the up axis is probably another one."""
+    lo, hi = points_m.min(0), points_m.max(0)
+    extent = hi - lo
+    height = float(extent[1])
+    if not PLAUSIBLE_HEIGHT_M[0] <= height <= PLAUSIBLE_HEIGHT_M[1]:
+        raw = height / UNITS[units]
+        guess = [u for u, f in UNITS.items() if 1.0 <= raw * f <= 2.2 and u != units]
+        hint = (f"the numbers look like {guess[0]}: pass --units {guess[0]}" if guess
+                else "check the units (--units m|cm|mm) and the up axis (--up y|z)")
+        raise ValueError(
+            f"{path}: the body is {raw:,.4g} units tall along the up axis ({up}); read as {units} that is "
+            f"{height:.4g} m, not a person's height ({PLAUSIBLE_HEIGHT_M[0]}-{PLAUSIBLE_HEIGHT_M[1]} m); {hint}"
+        )
+    horizontal = max(float(extent[0]), float(extent[2]))
+    if height < 0.6 * horizontal:
+        other = "z" if up == "y" else "y"
+        log.warning("%s: the body is %.2f m tall along the up axis (%s) but %.2f m wide: is the capture %s-up? "
+                    "(pass --up %s; ignore this for a lying or crouching subject)", path, height, up, horizontal,
+                    other, other)
+
+
+def check_timestamps(ts: np.ndarray, where: str) -> None:
+    """Warn about gaps (an interval over GAP_FACTOR x the median), naming the source."""
+    if ts.shape[0] < 3:
+        return
+    dt = np.diff(ts)
+    med = float(np.median(dt))
+    gaps = np.nonzero(dt > GAP_FACTOR * med)[0]
+    if gaps.size:
+        log.warning("%s: %d gap(s) in the timestamps (the largest %.4f s after frame %d, median interval %.4f s); "
+                    "ground truth and observed frames use the nearest capture frame, so scores near a gap "
+                    "compare frames up to half a gap apart", where, gaps.size, float(dt[gaps].max()),
+                    int(gaps[np.argmax(dt[gaps])]), med)
+
+
+class ScanSequence:
+    """One captured sequence folder, read lazily: the frame list and timestamps at construction,
+    the points on demand (:meth:`read_frames`). Units and up axis are converted on reading."""
+
+    def __init__(self, folder: str | Path, up: str = "y", units: str = "m", fps: float | None = None,
+                 check: bool = True):
+        self.folder = Path(folder)
+        self.up, self.units = up, units
+        to_harness_frame(np.zeros((1, 3)), up, units)  # validates both
+        self.frames = list_scan_frames(self.folder)
+        found = read_timestamps(self.folder)
+        if found is not None:
+            ts, path = found
+            source = str(path)
+        elif fps is not None:
+            if not fps > 0:
+                raise ValueError(f"fps must be > 0, got {fps}")
+            ts, source = np.arange(len(self.frames), dtype=np.float64) / float(fps), f"fps={fps}"
+        else:
+            raise ValueError(
+                f"scan folder {self.folder}: no timestamps; add {TIMESTAMP_FILES[0]} (one time in seconds per frame) "
+                f"or {TIMESTAMP_FILES[1]} to the folder, or pass an fps (e.g. --fps 50)"
+            )
+        if ts.shape[0] != len(self.frames):
+            raise ValueError(
+                f"{source}: {ts.shape[0]} timestamps for {len(self.frames)} frame files in {self.folder}; "
+                "give exactly one time per frame (frames are the .ply/.obj/.npz files, in natural order)"
+            )
+        if not np.isfinite(ts).all() or (ts.shape[0] > 1 and not (np.diff(ts) > 0).all()):
+            bad = int(np.argmax(~np.isfinite(ts))) if not np.isfinite(ts).all() else int(np.argmax(np.diff(ts) <= 0)) + 1
+            raise ValueError(f"{source}: timestamps must be finite and strictly increasing (entry {bad}, "
+                             f"frame {self.frames[min(bad, len(self.frames) - 1)].name}: {ts[bad]!r})")
+        if len(self.frames) < 2:
+            raise ValueError(f"scan folder {self.folder}: one frame only; a sequence needs at least two")
+        check_timestamps(ts, source)
+        self.timestamps = ts
+        self.timestamps_source = source
+        self.source = f"scans:{self.folder}"
+        self.meta = {"subject": "", "folder": str(self.folder), "up": up, "units": units}
+        if check:
+            self.read_frames([0])
+
+    @property
+    def capture_fps(self) -> float:
+        return float(1.0 / np.median(np.diff(self.timestamps)))
+
+    @property
+    def duration(self) -> float:
+        """Span plus one median frame period, as :attr:`benchmark.motion.Motion.duration`."""
+        return float(self.timestamps[-1] - self.timestamps[0]) + 1.0 / self.capture_fps
+
+    def read_frames(self, indices) -> list[np.ndarray]:
+        """(N_i, 3) float64 points in metres, y up, of the given frames (each checked)."""
+        out = []
+        for i in indices:
+            path = self.frames[int(i)]
+            pts = to_harness_frame(read_scan_frame(path), self.up, self.units)
+            check_units(pts, path, self.up, self.units)
+            out.append(pts)
+        return out
+
+    def nearest_frames(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Indices of the capture frames nearest in time to ``t`` (absolute seconds) and the
+        signed offsets (capture time - t). Ties go to the earlier frame."""
+        ts = self.timestamps
+        j = np.clip(np.searchsorted(ts, t), 1, len(ts) - 1)
+        left, right = ts[j - 1], ts[j]
+        idx = np.where(t - left <= right - t, j - 1, j)
+        return idx, ts[idx] - t
+
+
+def parse_scan_data(data: str) -> tuple[Path, dict]:
+    """``scans=DIR[?up=z&units=mm&fps=50]`` -> (DIR, options). The options come from ``run``'s
+    ``--up`` / ``--units`` flags (or are written by hand)."""
+    if not data.startswith("scans="):
+        raise ValueError(f"--data {data!r}: a scan root is given as scans=DIR")
+    body = data[len("scans="):]
+    path, _, query = body.partition("?")
+    options = {}
+    for item in filter(None, query.split("&")):
+        key, sep, value = item.partition("=")
+        if not sep or key not in ("up", "units", "fps"):
+            raise ValueError(f"--data {data!r}: unknown option {item!r}; known: up=y|z, units=m|cm|mm, fps=F")
+        options[key] = float(value) if key == "fps" else value
+    if not path:
+        raise ValueError("--data scans=DIR: the folder is missing")
+    return Path(path), options
+
+
+def scan_data_spec(data: str | None, up: str | None, units: str | None) -> str | None:
+    """The ``--data`` value with ``run``'s --up / --units folded in (they apply to scans= only)."""
+    if up in (None, "y") and units in (None, "m"):
+        return data
+    if not data or not data.startswith("scans="):
+        raise ValueError("--up and --units apply to captured scans only: use them with --data scans=DIR")
+    extra = "&".join(f"{k}={v}" for k, v in (("up", up), ("units", units)) if v is not None)
+    return data + ("&" if "?" in data else "?") + extra
+
+
+def find_scan_sequences(root: str | Path, up: str = "y", units: str = "m", fps: float | None = None) -> dict:
+    """Scan sequences under ``root`` by id: each sub-folder holding frame files (its name is the
+    id), or ``root`` itself when it holds frames. Error when there are none."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"--data scans={root}: the folder does not exist")
+
+    def has_frames(p: Path) -> bool:
+        return any(f.is_file() and f.suffix.lower() in FRAME_SUFFIXES for f in p.iterdir())
+
+    folders = [root] if has_frames(root) else sorted((p for p in root.iterdir() if p.is_dir() and has_frames(p)),
+                                                   key=lambda p: natural_key(p.name))
+    if not folders:
+        raise FileNotFoundError(
+            f"--data scans={root}: no sequence folders; expected {root}/<sequence>/frame_0001.ply ... plus "
+            f"timestamps.txt in each (see benchmark/loaders/scans.py)"
+        )
+    return {(p.name if p != root else root.name): ScanSequence(p, up=up, units=units, fps=fps) for p in folders}

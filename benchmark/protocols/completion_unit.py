@@ -9,6 +9,7 @@ scan sampled at those timestamps).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import time
@@ -23,6 +24,8 @@ from benchmark.protocols.completion import decode_output, fit, observation_batch
 
 log = logging.getLogger(__name__)
 
+NO_GT_JOINTS = "no ground-truth joints"  # the MPJPE n/a reason on captured scans
+
 
 def stable_seed(*parts) -> int:
     h = hashlib.sha256("|".join(str(p) for p in parts).encode()).digest()
@@ -34,7 +37,8 @@ class UnitData:
     scans: object  # PointCloudSequence at the capture rate, for the window
     out_t: torch.Tensor  # (B, T_out) seconds from the window start
     gt_points: torch.Tensor  # (B, T_out, N, 3)
-    gt_joints: torch.Tensor  # (B, T_out, 22, 3)
+    gt_joints: torch.Tensor | None  # (B, T_out, 22, 3); None: captured scans (MPJPE n/a)
+    row_extra: list | None = None  # per sequence: extra fields for its per_sequence row
     # Built once per batch of sequences (so once per table when a table's units share a batch) and
     # shared by every prior and cell: KD-trees of the ground-truth scans (see evaluate).
     cache: dict = field(default_factory=dict, repr=False, compare=False)
@@ -318,8 +322,12 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     # The degradation depends on the table seed, the cell and the sequences, never on the prior:
     # every prior sees the same observation in a cell (same fingerprint).
     degrade_seed = stable_seed("degrade", data_source.seed, cell["points"], cell["fps"], *unit.sequence_ids)
-    obs = degrade(data.scans, int(cell["points"]), float(cell["fps"]), seed=degrade_seed,
-                  capture_fps=float(table_spec["data"]["capture_fps"]))
+    obs_offsets = None
+    if hasattr(data_source, "observe"):  # captured scans (scan_completion.py): nearest capture frames
+        obs, obs_offsets = data_source.observe(unit.sequence_ids, int(cell["points"]), float(cell["fps"]), degrade_seed)
+    else:
+        obs = degrade(data.scans, int(cell["points"]), float(cell["fps"]), seed=degrade_seed,
+                      capture_fps=float(table_spec["data"]["capture_fps"]))
     fp = fingerprint(obs)
     batch = observation_batch(obs, float(table_spec["data"]["window_s"]), data.out_t, device)
     obj = table_spec["objective"]
@@ -331,10 +339,20 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     t1 = time.perf_counter()
     output, _, _ = decode_output(state, body, batch.output_timestamps)
     sp = profile.get("surface_points", "all")
+    no_joints = data.gt_joints is None
+    if no_joints:  # captured scans: the evaluation's joint column is computed on zeros and dropped below
+        data = dataclasses.replace(data, gt_joints=torch.zeros_like(output.joints))
     per_seq = evaluate(body, output, data, device, surface_points=None if sp in (None, "all") else int(sp))
     t2 = time.perf_counter()
-    for sid, row in zip(unit.sequence_ids, per_seq):
+    for i, (sid, row) in enumerate(zip(unit.sequence_ids, per_seq)):
         row["id"] = sid
+        if no_joints:
+            row["sums"].pop("mpjpe_m", None)
+            row["na"] = {"mpjpe_m": NO_GT_JOINTS}
+        if data.row_extra is not None:
+            row.update(data.row_extra[i])
+        if obs_offsets is not None:
+            row["obs_time_offset_max_s"] = obs_offsets[i]
     return {
         "unit_id": unit.unit_id, "spec_hash": unit.spec_hash, "prior": unit.prior, "cell": dict(cell),
         "sequence_ids": list(unit.sequence_ids), "fingerprint": fp, "per_sequence": per_seq,
@@ -344,8 +362,23 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
 
 
 # -- the protocol-module interface (benchmark.protocols.table_run.PROTOCOL_MODULES) ----------------
-def make_source(spec: dict, body, motions_by_id: dict, seed: int) -> CompletionData:
+def make_source(spec: dict, body, motions_by_id: dict, seed: int):
+    from benchmark.protocols.scan_completion import ScanCompletionData, is_scan_source
+
+    if is_scan_source(motions_by_id):
+        return ScanCompletionData(spec, body, motions_by_id, seed)
     return CompletionData(spec, body, motions_by_id, seed)
+
+
+def load_motions(spec: dict, data: str | None, body) -> dict:
+    """--data: captured scans (``scans=DIR``, scan_completion.py) or motions (table_run.load_motions)."""
+    if data and data.startswith("scans="):
+        from benchmark.protocols.scan_completion import load_scan_sequences
+
+        return load_scan_sequences(spec, data)
+    from benchmark.protocols.table_run import load_motions as load_motion_files
+
+    return load_motion_files(data, float(spec["data"]["window_s"]), body)
 
 
 def run_unit(unit, spec: dict, profile: dict, adapter, body, source: CompletionData, device) -> dict:

@@ -17,6 +17,8 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
 
         motions = build_split("test")
         by_id = {m.source: m for m in motions}
+    elif data.startswith("scans="):
+        raise ValueError(f"--data {data}: captured scans are read by the completion protocol (table1) only")
     else:
         from benchmark.loaders.amass import load_amass
         from benchmark.motion import Motion
@@ -29,9 +31,19 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
 
         by_id = {}
         for f in files:
-            with np.load(f, allow_pickle=False) as npz:
-                keys = set(npz.files)
-            m = load_amass(f) if "mocap_framerate" in keys or "mocap_frame_rate" in keys else Motion.load(f)
+            try:
+                with np.load(f, allow_pickle=False) as npz:
+                    keys = set(npz.files)
+            except Exception as exc:  # not a zip, a pickle, truncated...
+                raise ValueError(f"--data {data}: {f} is not a readable .npz file ({type(exc).__name__}: {exc}); "
+                                 "remove it from the folder or re-export it (python -m benchmark data convert)") from None
+            try:
+                m = load_amass(f) if "mocap_framerate" in keys or "mocap_frame_rate" in keys else Motion.load(f)
+            except KeyError as exc:
+                text = exc.args[0] if exc.args and isinstance(exc.args[0], str) and " " in exc.args[0] else \
+                    f"{f}: no field {exc} (fields present: {sorted(keys)})"
+                raise ValueError(f"--data {data}: {text}; convert the file with "
+                                 "`python -m benchmark data convert FILE --out FILE.npz`") from None
             by_id[str(f.relative_to(root) if root.is_dir() else f.name)] = m
     if body is not None:
         by_id = {k: _shape_for_body(m, body) for k, m in by_id.items()}
@@ -51,8 +63,9 @@ def _shape_for_body(motion, body):
     if motion.shape is None:
         return motion
     smpl_family = {"smpl", "smplh", "smplx"}
-    src = (motion.body or "").lower()
-    if src == body.name or (src in smpl_family and body.name in smpl_family):
+    src = (motion.body or "").lower().split("-")[0]
+    kind = str(getattr(body, "model_type", None) or body.name).lower().split("-")[0]  # "smplh-female" -> "smplh"
+    if src == kind or (src in smpl_family and kind in smpl_family):
         s = motion.shape.reshape(-1)[: body.shape_dim]
         s = torch.cat([s, s.new_zeros(body.shape_dim - s.numel())])
         return dataclasses.replace(motion, shape=s, body=body.name)
@@ -83,6 +96,28 @@ def _sha_file(path: str | None) -> str | None:
     if not path or not Path(path).is_file():
         return None
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def motion_sha256(motion) -> str:
+    """Content hash of a motion as a unit reads it: its arrays (dtype, shape and bytes of poses,
+    translation, timestamps, shape), its body name and its metadata. Two files holding different
+    motions under one name hash differently; the same motion hashes the same wherever it lies."""
+    import json
+
+    import numpy as np
+
+    h = hashlib.sha256()
+    for name in ("poses", "trans", "timestamps", "shape"):
+        value = getattr(motion, name, None)
+        if value is None:
+            h.update(f"{name}:none;".encode())
+            continue
+        arr = np.ascontiguousarray(value.detach().cpu().numpy() if hasattr(value, "detach") else np.asarray(value))
+        h.update(f"{name}:{arr.dtype.str}:{arr.shape};".encode())
+        h.update(arr.tobytes())
+    h.update(f"body:{motion.body};".encode())
+    h.update(json.dumps(motion.meta or {}, sort_keys=True, default=str).encode())
+    return h.hexdigest()
 
 
 # Protocol modules, by the ``protocol`` field of a table spec. Each module provides
@@ -123,7 +158,7 @@ def na_result(unit, reason: str) -> dict:
 
 def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="only-missing", size="embedded",
               weights=None, data=None, backend="local") -> dict:
-    from benchmark.registry import make_adapter
+    from benchmark.registry import make_adapter, weights_content_sha256
     from benchmark.results import derive_table, plan_units
     from benchmark.runner import run_units
     from benchmark.writers import format_markdown, write_table
@@ -154,14 +189,18 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
         if adapters[name] is None:
             adapters[name] = make_adapter(name, size=size, weights=weights.get(name), device=device)
             info = prior_info[name]
-            info["embedded_sha256"] = getattr(adapters[name], "weights_sha256", None)
+            # the content of every weights file the adapter read (embedded or given): new weights
+            # under the same file name invalidate stored results
+            info["embedded_sha256"] = getattr(adapters[name], "weights_sha256", None) or weights_content_sha256(adapters[name])
         return adapters[name]
 
     # resolve the embedded weights' hashes before planning, so the spec hash covers them
     for name in priors:
         get_adapter(name)
 
-    units = plan_units(spec, profile, priors, ids, seed, device, prior_info)
+    # the content of the motion data each sequence id stands for enters its units' spec hash
+    data_hashes = {sid: motion_sha256(motions[sid]) for sid in ids}
+    units = plan_units(spec, profile, priors, ids, seed, device, prior_info, data_hashes=data_hashes)
     source = module.make_source(spec, body, motions, seed)
 
     def execute(unit):
@@ -171,9 +210,10 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
             return na_result(unit, reason)
         return module.run_unit(unit, spec, profile, adapter, body, source, device)
 
-    results, failures = run_units(units, execute, out_dir, resume=resume, backend=backend)
+    report = run_units(units, execute, out_dir, resume=resume, backend=backend)
+    results, failures = report
     meta = {"units": units, "profile": profile, "seed": seed, "device": str(device), "priors": prior_info,
-            "sequences": ids, "data": data or "synthetic:test", "body": body.name}
+            "sequences": ids, "data": data or "synthetic:test", "body": body.name, "resume": report.resume_counts()}
     table = derive_table(spec, results, meta)
     files = write_table(table, out_dir)
     return {"table": table, "markdown": format_markdown(table), "files": files, "failures": failures}

@@ -45,6 +45,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from benchmark.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
 from benchmark.interpolate import slerp_frames
 from benchmark.loaders.amass import Z_UP_TO_Y_UP
 from benchmark.skeleton import NUM_JOINTS
@@ -56,7 +57,7 @@ from priors.hmvae.checkpoint import (
     load_project_vae,
     resolve_paper_weights,
 )
-from priors.hmvae.model import PAPER_CONFIG, HMVAE, matrix_to_sixd_columns, parameter_summary, sixd_columns_to_matrix
+from priors.hmvae.model import PAPER_CONFIG, HMVAE, parameter_summary
 from priors.hmvae.skeleton import NUM_JOINTS24
 from priors.hmvae.trajectory import PAPER_TRAJECTORY_CONFIG, TrajectoryModel, integrate_velocity
 from priors.training import WEIGHTS_DIR
@@ -141,6 +142,7 @@ class HMVAEPrior(PriorAdapter):
     shape_conditioned = False
     has_encoder = True
     sixd_layout = "columns"
+    frozen_network = "net"
     uses_trajectory = False
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
@@ -163,10 +165,7 @@ class HMVAEPrior(PriorAdapter):
         if vae.config.seq_len != FRAMES:
             raise ValueError(f"{self.name}: the adapter needs the len-{FRAMES} model, the weights hold len-{vae.config.seq_len}")
         self.net = HMVAEDecode(vae, trajectory)
-        for p in self.net.parameters():
-            p.requires_grad_(False)
-        self.to(device)
-        self.net.eval()
+        self.freeze_network(device)
 
     # -- weights -------------------------------------------------------------------------------
     def _embedded_files(self, weights) -> tuple[Path, Path]:
@@ -206,12 +205,6 @@ class HMVAEPrior(PriorAdapter):
     def latent_shapes(self) -> dict[str, tuple[int, int]]:
         c = self.vae.config
         return {"z_g": (self.vae.num_global_edges, c.latent_d), "z_l": (self.vae.num_local_edges, c.shallow_latent_d)}
-
-    def train(self, mode: bool = True):
-        """The prior is frozen: its networks stay in eval mode."""
-        super().train(mode)
-        self.net.eval()
-        return self
 
     @classmethod
     def paper_network(cls) -> nn.Module:

@@ -51,6 +51,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
+from benchmark.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
 from priors.hmvae.skeleton import (
     NUM_JOINTS24,
     SkeletonConv,
@@ -197,27 +198,6 @@ class Decoder(nn.Module):
         local = self.latent_dec_layers[NUM_LEVELS - 1](z_l).reshape(B, E1, -1, T[1])
         h = torch.cat([h.reshape(B, E1, -1, T[1]), local], dim=2).reshape(B, -1, T[1])
         return self.layers[NUM_LEVELS - 1](h)
-
-
-def sixd_columns_to_matrix(x: torch.Tensor) -> torch.Tensor:
-    """(..., 6) "columns" 6D -> (..., 3, 3) by Gram-Schmidt, written with elementwise ops only
-    (ONNX-exportable). Same result as ``benchmark.rotations.sixd_to_matrix(x, "columns")`` and as
-    the official ``rotation_matrix_from_ortho6d`` (x = a/|a|, z = x X b / |x X b|, y = z X x)."""
-    a, b = x[..., 0:3], x[..., 3:6]
-    b1 = a / a.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    b2 = b - (b1 * b).sum(-1, keepdim=True) * b1
-    b2 = b2 / b2.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    b3 = torch.stack([
-        b1[..., 1] * b2[..., 2] - b1[..., 2] * b2[..., 1],
-        b1[..., 2] * b2[..., 0] - b1[..., 0] * b2[..., 2],
-        b1[..., 0] * b2[..., 1] - b1[..., 1] * b2[..., 0],
-    ], dim=-1)
-    return torch.stack([b1, b2, b3], dim=-1)
-
-
-def matrix_to_sixd_columns(R: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) -> (..., 6) = [R[:, 0], R[:, 1]] (the official ``process_all_data_motion`` layout)."""
-    return torch.cat([R[..., :, 0], R[..., :, 1]], dim=-1)
 
 
 class HMVAE(nn.Module):

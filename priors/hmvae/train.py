@@ -58,10 +58,11 @@ import roma
 import torch
 
 from benchmark.body.lbs import forward_kinematics
+from benchmark.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
 from benchmark.skeleton import JOINT_INDEX, NUM_JOINTS
 from priors import training
 from priors.hmvae.checkpoint import learnable_state_dict
-from priors.hmvae.model import HMVAE, HMVAEConfig, kl_normal, matrix_to_sixd_columns, parameter_summary, sixd_columns_to_matrix
+from priors.hmvae.model import HMVAE, HMVAEConfig, kl_normal, parameter_summary
 from priors.hmvae.skeleton import NUM_JOINTS24, PARENTS24
 from priors.hmvae.trajectory import TrajectoryConfig, TrajectoryModel, integrate_velocity, root_velocity
 

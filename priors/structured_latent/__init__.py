@@ -12,7 +12,7 @@ statistics are those of the training windows and travel with the weights. Motion
 initial heading (about +y) removed, initial ground-plane translation zeroed [paper: "identity
 initial root rotation", read as heading only; height, pitch and roll kept].
 
-Network (network.py; §3.2): a CVAE, encoder E(chi) -> (mu, sigma) not conditioned on shape,
+Network (model.py; §3.2): a CVAE, encoder E(chi) -> (mu, sigma) not conditioned on shape,
 decoder D(z, beta) -> chi_hat conditioned on the body's shape vector. Paper: dim(z) = 64 (256 for
 the CHUM comparison), beta = 8 SMPL betas, no layer types or widths [inferred: a temporal
 convolutional encoder / decoder over the 100 anchors, widths C (channels) and H (hidden); a
@@ -42,16 +42,17 @@ window_s is read detached (``constant_latents``). Prior term |z|^2. ``decode_anc
 anchors and tau_hat (s) for the sls protocol's timestamp term; ``encode_motion`` the posterior
 means; ``export_decoder`` (z, shape) -> (anchor rotations, anchor trans, tau_hat).
 
-Checkpoint format (project): ``priors/weights/structured_latent.pt`` = torch.save of
+Checkpoint format (checkpoint.py; project): ``priors/weights/structured_latent.pt`` = torch.save of
 {"state_dict": StructuredLatentCVAE state (including the buffers trans_min, trans_max, tau_max),
 "config": {"network": {...}, "normalisation": {...}, "format": "structured-latent/1"}}, loaded
 strictly; training record ``structured_latent.json`` beside it. Official weights: format unknown;
 ``size="paper"`` raises and says what is unknown.
 """
 
-from priors.structured_latent.adapter import DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN, StructuredLatentPrior, load_checkpoint
+from priors.structured_latent.adapter import StructuredLatentPrior
+from priors.structured_latent.checkpoint import DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN, load_checkpoint
 from priors.structured_latent.gradnorm import GradNorm
-from priors.structured_latent.network import (
+from priors.structured_latent.model import (
     EMBEDDED_CONFIG, PAPER_CHUM_CONFIG, PAPER_CONFIG, StructuredLatentCVAE, kl_divergence,
 )
 from priors.structured_latent.train import build_anchor_data, train_structured_latent

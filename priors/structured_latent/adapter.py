@@ -3,70 +3,20 @@
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import torch
 from torch import nn
 
 from benchmark.interpolate import lerp_frames, slerp_frames
 from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
-from priors.structured_latent.network import PAPER_CHUM_CONFIG, PAPER_CONFIG, StructuredLatentCVAE
+from priors.structured_latent.model import PAPER_CONFIG, StructuredLatentCVAE
 from priors.structured_latent.representation import (
     ANCHORS, JOINTS, SIXD_LAYOUT, canonical_frame, canonicalise, motion_to_chi, resample_anchors,
 )
-from priors.structured_latent.train import CHECKPOINT_NAME, train_structured_latent
+from priors.structured_latent.checkpoint import DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN, load_checkpoint
+from priors.training import embedded_out_dir, embedded_weights
 
 log = logging.getLogger(__name__)
-
-DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / CHECKPOINT_NAME
-CHECKPOINT_FORMAT = "structured-latent/1"
-TRAIN_COMMAND = "python -m benchmark train structured-latent"
-OFFICIAL_UNKNOWN = (
-    "structured-latent size 'paper' has no loader for official weights: the authors' code and any checkpoint "
-    "(gitlab.inria.fr/mmarsot/a-structured-latent-space; github.com/mmarsot/A_structured_latent_space is only a README "
-    "pointer) were not reachable when this adapter was written, so these are unknown: the checkpoint file format and "
-    "its state-dict key names, the encoder/decoder layer types and widths (the paper gives only dim(z) = 64, or 256 for "
-    "its CHUM comparison, and 8 SMPL betas), the 6D layout, and the training-set normalisation statistics "
-    "(translation min/max, timestamp max) that chi needs. Use size='embedded' (priors/weights/structured_latent.pt, "
-    f"`{TRAIN_COMMAND}`), or add a loader to priors/structured_latent/adapter.py after inspecting the official files. "
-    "`python -m benchmark describe structured-latent --size paper` prints the paper-size architecture assumed here."
-)
-
-
-# -- checkpoints ------------------------------------------------------------------------------
-def load_checkpoint(path: str | Path) -> tuple[StructuredLatentCVAE, dict]:
-    """Build and strictly load a project checkpoint ``{"state_dict", "config": {"network",
-    "normalisation", "format"}}`` (written by :func:`train_structured_latent`). Every tensor of the
-    network must be present with its shape and nothing else may be (errors name the file and key)."""
-    path = Path(path)
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise ValueError(f"{path}: not a readable structured-latent checkpoint ({type(exc).__name__}: {exc}); "
-                         f"retrain with `{TRAIN_COMMAND}`") from exc
-    if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict) or not isinstance(ckpt.get("config"), dict):
-        top = sorted(ckpt)[:20] if isinstance(ckpt, dict) else type(ckpt).__name__
-        raise ValueError(f"{path}: expected a dict with 'state_dict' and 'config' (priors/weights/{CHECKPOINT_NAME}), found {top}")
-    cfg = ckpt["config"]
-    if "network" not in cfg:
-        raise ValueError(f"{path}: field 'config.network' is missing; retrain with `{TRAIN_COMMAND}`")
-    try:
-        net = StructuredLatentCVAE(**cfg["network"])
-    except TypeError as exc:
-        raise ValueError(f"{path}: field 'config.network' = {cfg['network']!r} does not describe a StructuredLatentCVAE ({exc})") from exc
-    raw = ckpt["state_dict"]
-    expected = net.state_dict()
-    for key, ref in expected.items():
-        if key not in raw:
-            raise KeyError(f"{path}: missing key {key!r} (shape {tuple(ref.shape)}); the checkpoint must hold all of {sorted(expected)}")
-        if not torch.is_tensor(raw[key]) or raw[key].shape != ref.shape:
-            found = tuple(raw[key].shape) if torch.is_tensor(raw[key]) else type(raw[key]).__name__
-            raise ValueError(f"{path}: key {key!r} has shape {found}, expected {tuple(ref.shape)} for config {net.config}")
-    extra = sorted(set(raw) - set(expected))
-    if extra:
-        raise ValueError(f"{path}: unexpected keys {extra[:10]} (not part of StructuredLatentCVAE with config {net.config})")
-    net.load_state_dict(raw, strict=True)
-    return net, cfg
 
 
 class _AnchorDecoder(nn.Module):
@@ -106,6 +56,7 @@ class StructuredLatentPrior(PriorAdapter):
     shape_conditioned = True
     has_encoder = True
     sixd_layout = SIXD_LAYOUT
+    frozen_network = "net"
     anchors = ANCHORS
     constant_latents = ("window_s",)  # latents decode reads but never differentiates (zero gradient)
     init = "sample"  # "sample": z ~ N(0, I); "zero": z = 0 (the prior mean)
@@ -116,18 +67,10 @@ class StructuredLatentPrior(PriorAdapter):
             raise ValueError(OFFICIAL_UNKNOWN + ("" if weights is None else f" (weights given: {weights})"))
         if size != "embedded":
             raise ValueError(f"structured-latent: unknown size {size!r}; expected 'embedded' or 'paper'")
-        path = Path(weights) if weights is not None else DEFAULT_WEIGHTS
-        if not path.exists():
-            raise FileNotFoundError(
-                f"embedded structured-latent weights not found: {path}. Train them with `{TRAIN_COMMAND}` "
-                "(or `python -c \"from priors.structured_latent import StructuredLatentPrior as P; P.train_embedded()\"`)"
-            )
+        path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS)
         self.net, self.checkpoint_config = load_checkpoint(path)
         self.weights_path = str(path)
-        for p in self.net.parameters():
-            p.requires_grad_(False)
-        self.to(device)
-        self.net.eval()
+        self.freeze_network(device)
 
     @classmethod
     def from_network(cls, net: StructuredLatentCVAE) -> "StructuredLatentPrior":
@@ -135,9 +78,7 @@ class StructuredLatentPrior(PriorAdapter):
         self = cls.__new__(cls)
         PriorAdapter.__init__(self, size="embedded", weights=None)
         self.net, self.checkpoint_config = net, {"network": net.config, "normalisation": net.normalisation()}
-        for p in self.net.parameters():
-            p.requires_grad_(False)
-        self.net.eval()
+        self.freeze_network()
         return self
 
     # -- properties ---------------------------------------------------------------------------
@@ -152,12 +93,6 @@ class StructuredLatentPrior(PriorAdapter):
     @property
     def device(self) -> torch.device:
         return next(self.net.parameters()).device
-
-    def train(self, mode: bool = True):
-        """The prior is frozen: its network stays in eval mode."""
-        super().train(mode)
-        self.net.eval()
-        return self
 
     # -- latents ------------------------------------------------------------------------------
     def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -261,12 +196,11 @@ class StructuredLatentPrior(PriorAdapter):
     @classmethod
     def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
         """``python -m benchmark train structured-latent``: retrain the embedded weights."""
-        out = Path(out_dir) if out_dir is not None else DEFAULT_WEIGHTS.parent
-        target = out / CHECKPOINT_NAME
-        if target.exists() and not overwrite:
-            raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
+        from priors.structured_latent.train import train_structured_latent
+
+        out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
         _, record = train_structured_latent(out, steps=steps, seed=seed)
         return record
 
 
-__all__ = ["StructuredLatentPrior", "load_checkpoint", "DEFAULT_WEIGHTS", "OFFICIAL_UNKNOWN", "PAPER_CHUM_CONFIG"]
+__all__ = ["StructuredLatentPrior"]

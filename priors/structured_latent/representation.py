@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import roma
 import torch
 
+from benchmark.frames import from_heading_frame, ground_origin, heading, to_heading_frame
+from benchmark.frames import sixd_columns_to_matrix as gram_schmidt
 from benchmark.interpolate import lerp_frames, slerp_frames
 from benchmark.rotations import matrix_to_sixd
 from benchmark.skeleton import NUM_JOINTS
@@ -70,14 +72,10 @@ def resample_anchors(rotations: torch.Tensor, trans: torch.Tensor, timestamps: t
     return rot, tr, dst - dst[:, :1]
 
 
-def heading(root: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) root rotations -> (...) yaw (rad) of the root's +z axis about +y (0 = facing +z)."""
-    fwd = root[..., :, 2]
-    return torch.atan2(fwd[..., 0], fwd[..., 2])
-
-
 def yaw_matrix(yaw: torch.Tensor) -> torch.Tensor:
-    """(...) angles -> (..., 3, 3) rotations about +y."""
+    """(...) angles -> (..., 3, 3) rotations about +y, by roma's rotation-vector map (this prior's
+    weights were trained with it; :func:`benchmark.frames.yaw_matrix`, the cos/sin form, differs
+    in the last bits)."""
     zero = torch.zeros_like(yaw)
     return roma.rotvec_to_rotmat(torch.stack([zero, yaw, zero], dim=-1))
 
@@ -85,7 +83,7 @@ def yaw_matrix(yaw: torch.Tensor) -> torch.Tensor:
 def canonical_frame(rotations: torch.Tensor, trans: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The initial heading yaw0 (B,) and ground-plane offset (B, 3) = (x0, 0, z0) of motions."""
     yaw0 = heading(rotations[:, 0, 0])
-    offset = trans[:, 0] * trans.new_tensor([1.0, 0.0, 1.0])
+    offset = ground_origin(trans)
     return yaw0, offset
 
 
@@ -96,19 +94,13 @@ def canonicalise(rotations: torch.Tensor, trans: torch.Tensor) -> tuple[torch.Te
     world = R_y(yaw0) @ canonical + offset (root rotation: R_y(yaw0) @ canonical root).
     """
     yaw0, offset = canonical_frame(rotations, trans)
-    H = yaw_matrix(-yaw0).to(rotations.dtype)  # (B, 3, 3)
-    root = H[:, None] @ rotations[:, :, 0]
-    rot = torch.cat([root[:, :, None], rotations[:, :, 1:]], dim=2)
-    tr = ((trans - offset[:, None]) @ H.transpose(-1, -2).to(trans.dtype))
+    rot, tr = to_heading_frame(rotations, trans, yaw_matrix(-yaw0).to(rotations.dtype), offset)
     return rot, tr, yaw0, offset
 
 
 def uncanonicalise(rotations: torch.Tensor, trans: torch.Tensor, yaw0: torch.Tensor, offset: torch.Tensor):
     """Inverse of :func:`canonicalise`."""
-    H = yaw_matrix(yaw0).to(rotations.dtype)
-    root = H[:, None] @ rotations[:, :, 0]
-    rot = torch.cat([root[:, :, None], rotations[:, :, 1:]], dim=2)
-    return rot, trans @ H.transpose(-1, -2).to(trans.dtype) + offset[:, None]
+    return from_heading_frame(rotations, trans, yaw_matrix(yaw0).to(rotations.dtype), offset)
 
 
 @dataclass
@@ -166,17 +158,10 @@ def expand_joints(model_rot: torch.Tensor) -> torch.Tensor:
 
 
 def sixd_columns_to_matrix(x: torch.Tensor) -> torch.Tensor:
-    """(..., 6) "columns" 6D -> (..., 3, 3) by Gram-Schmidt, the same map as
-    ``benchmark.rotations.sixd_to_matrix(x, "columns")`` written with elementwise ops only, so a
-    traced graph keeps every batch dimension dynamic (roma's flatten / unflatten freeze them)."""
-    a1, a2 = x[..., 0:3], x[..., 3:6]
-    b1 = a1 / a1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    a2 = a2 - (b1 * a2).sum(-1, keepdim=True) * b1
-    b2 = a2 / a2.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    b3 = torch.stack([b1[..., 1] * b2[..., 2] - b1[..., 2] * b2[..., 1],
-                      b1[..., 2] * b2[..., 0] - b1[..., 0] * b2[..., 2],
-                      b1[..., 0] * b2[..., 1] - b1[..., 1] * b2[..., 0]], dim=-1)
-    return torch.stack([b1, b2, b3], dim=-1)
+    """(..., 6) "columns" 6D -> (..., 3, 3) by Gram-Schmidt with norms clamped at 1e-12
+    (:func:`benchmark.frames.sixd_columns_to_matrix`: elementwise ops, so a traced graph keeps
+    every batch dimension dynamic; roma's flatten / unflatten freeze them)."""
+    return gram_schmidt(x, eps=1e-12)
 
 
 def chi_to_motion(chi: torch.Tensor, trans_min: torch.Tensor, trans_max: torch.Tensor,

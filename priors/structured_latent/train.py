@@ -39,8 +39,9 @@ import torch
 from benchmark.body.lbs import forward_kinematics
 from benchmark.rotations import matrix_to_sixd
 from benchmark.skeleton import NUM_JOINTS
+from priors.structured_latent.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_NAME
 from priors.structured_latent.gradnorm import GradNorm
-from priors.structured_latent.network import EMBEDDED_CONFIG, StructuredLatentCVAE, kl_divergence
+from priors.structured_latent.model import EMBEDDED_CONFIG, StructuredLatentCVAE, kl_divergence
 from priors.structured_latent.representation import (
     ANCHORS, FEATURES, JOINTS, POSE, POSE_DIM, SIXD_LAYOUT, TIME, TRANS, IDENTITY_6D, Normalisation, canonicalise,
     chi_to_motion,
@@ -48,7 +49,6 @@ from priors.structured_latent.representation import (
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_NAME = "structured_latent.pt"
 RECORD_NAME = "structured_latent.json"  # training.save_trained writes it beside CHECKPOINT_NAME
 DEFAULT_STEPS = 3000  # total over both phases: about 10-14 min on one CPU core (measured, see the report)
 PHASE2_FRACTION = 0.2
@@ -356,7 +356,7 @@ def train_structured_latent(out_dir=None, steps: int | None = None, seed: int = 
     model.eval()
     record = {
         "prior": "structured-latent",
-        "network": "priors/structured_latent/network.py StructuredLatentCVAE",
+        "network": "priors/structured_latent/model.py StructuredLatentCVAE",
         "config": model.config,
         "normalisation": norm.to_dict(),
         "parameters": sum(p.numel() for p in model.parameters()),
@@ -376,7 +376,7 @@ def train_structured_latent(out_dir=None, steps: int | None = None, seed: int = 
     }
     if out_dir is not None:
         training.save_trained(out_dir, CHECKPOINT_NAME, model.state_dict(),
-                              {"network": model.config, "normalisation": norm.to_dict(), "format": "structured-latent/1"}, record)
+                              {"network": model.config, "normalisation": norm.to_dict(), "format": CHECKPOINT_FORMAT}, record)
     return model, record
 
 

@@ -8,18 +8,16 @@ import torch
 
 from priors import training
 from priors.base import FitBatch
-from priors.latent_primitives import (
+from benchmark.frames import yaw_matrix
+from priors.sequential_primitives import SequentialPrimitivesPrior
+from priors.sequential_primitives.model import (
     EMBEDDED_CONFIG,
     MODEL_JOINTS,
     SequentialPrimitives,
-    SequentialPrimitivesPrior,
-    WindowBank,
     canonicalise,
     gram_schmidt,
-    primitives_loss,
-    train_sequential_primitives,
-    yaw_matrix,
 )
+from priors.sequential_primitives.train import WindowBank, primitives_loss, train_sequential_primitives
 
 TINY = dict(EMBEDDED_CONFIG, latent=16, d_model=32, heads=2, enc_layers=1, dec_layers=1, ff=64, mlp_hidden=32,
             mlp_layers=2, seg_layers=1, time_freqs=4, point_hidden=[16])

@@ -1,0 +1,261 @@
+"""``python -m benchmark complete INPUT --prior NAME --out OUT``: apply a prior to one capture.
+
+INPUT is a scan folder (the layout of :mod:`benchmark.loaders.scans`), a harness / AMASS ``.npz``
+motion or a BVH. The observation is made under the table1 rules: a motion is scanned like the
+table's capture (``capture_fps``, ``points_per_frame`` of ``benchmark/tables/table1.yaml``); a scan
+folder is used as captured. Then, as in a table1 cell: the frames nearest in time to ``--fps``
+(default 10, table1's densest rate), a seeded random subset of ``--points`` per frame (default:
+all of them), one window (``--window``, default table1's 4 s, shorter if the input is), and the
+table1 fit (:func:`benchmark.protocols.completion.fit`: objective, initialisation, Adam, cosine
+schedule) with the profile's steps and loss-vertex subset.
+
+Writes to OUT (a folder):
+
+- ``motion.npz``: the completed motion at 30 fps (poses, trans, shape, timestamps from the window
+  start, body), the harness format (``data convert`` reads it back);
+- ``meshes/frame_XXXX.ply`` with ``--meshes``: one mesh per output frame;
+- ``preview.webp``: an animation, when the report renderer (``benchmark.report``) is installed;
+- ``diagnostics.json``: what is printed: the data term's history, convergence, and, where the
+  truth is known (a motion input, or a scan folder written by ``data make-scans`` with its
+  ``ground_truth/motion.npz``), MPJPE and root-orientation / facing errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+OUTPUT_FPS = 30.0
+CONVERGED_RELATIVE_CHANGE = 0.01  # data term change over the last logged interval, relative
+
+
+def _observation_from_motion(motion, body, spec: dict, window: float, points, fps: float, seed: int):
+    from benchmark.degrade import degrade
+    from benchmark.observations import make_scans
+    from benchmark.protocols.completion_unit import stable_seed
+
+    d = spec["data"]
+    scans, _ = make_scans(body, [motion], fps=float(d["capture_fps"]), num_points=int(d["points_per_frame"]),
+                          noise_std=float(d.get("scan_noise_std", 0.0)), seed=stable_seed("capture", seed, motion.source),
+                          duration=window)
+    obs = degrade(scans, points, fps, seed=stable_seed("degrade", seed, points, fps), capture_fps=float(d["capture_fps"]))
+    return obs, float(motion.timestamps[0])
+
+
+def _load_input(path: Path, args, body, spec: dict):
+    """(observation, window start in the input's time, window, truth Motion or None, description)."""
+    from benchmark.loaders.convert import load_motion
+    from benchmark.loaders.scans import ScanSequence
+    from benchmark.motion import Motion
+    from benchmark.protocols.completion_unit import stable_seed
+    from benchmark.protocols.scan_completion import ScanCompletionData
+    from benchmark.protocols.table_run import _shape_for_body
+
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such scan folder or motion file")
+    window_spec = float(spec["data"]["window_s"])
+    if path.is_dir():
+        seq = ScanSequence(path, up=args.up, units=args.units, fps=args.capture_fps)
+        start = args.start
+        if not 0 <= start < seq.duration:
+            raise ValueError(f"{path}: --start {start} s lies outside the capture ({seq.duration:.3f} s)")
+        window = min(args.window or window_spec, seq.duration - start)
+        wspec = copy.deepcopy(spec)
+        wspec["data"].update(window_s=window, window_start_s=start)
+        source = ScanCompletionData(wspec, body, {path.name: seq}, args.seed)
+        obs, offsets = source.observe([path.name], args.points, args.fps,
+                                      stable_seed("degrade", args.seed, args.points, args.fps, path.name))
+        t_start = float(obs.timestamps[0, 0])
+        truth_file = path / "ground_truth" / "motion.npz"
+        truth = _shape_for_body(Motion.load(truth_file), body) if truth_file.is_file() else None
+        what = (f"scan folder {path}: {len(seq.frames)} frames at {seq.capture_fps:.4g} fps; observed "
+                f"{obs.num_frames} frames (largest offset from the nominal instants {1000 * offsets[0]:.1f} ms)")
+        return obs, t_start, window, truth, what
+    if args.up != "y" or args.units != "m":
+        raise ValueError("--up / --units apply to scan folders; motion files are converted by their loaders")
+    motion = _shape_for_body(load_motion(path), body)
+    if args.start:
+        motion = motion.window(float(motion.timestamps[0]) + args.start, motion.duration - args.start)
+    window = min(args.window or window_spec, motion.duration)
+    obs, t_start = _observation_from_motion(motion, body, spec, window, args.points, args.fps, args.seed)
+    what = (f"motion {path} ({motion.num_frames} frames at {motion.fps:.4g} fps), scanned at "
+            f"{spec['data']['capture_fps']} fps x {spec['data']['points_per_frame']} points; observed {obs.num_frames} frames")
+    return obs, t_start, window, motion, what
+
+
+def _yaw_forward(R: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) root rotations -> (..., 2) unit horizontal facing (the body's +z on the x-z plane)."""
+    f = R[..., :, 2]
+    h = torch.stack([f[..., 0], f[..., 2]], -1)
+    return h / h.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+
+
+def truth_diagnostics(body, rot, output, truth, abs_t: torch.Tensor) -> dict:
+    """MPJPE, root-orientation and facing errors of the output against the truth (degrees, mm)."""
+    import roma
+
+    from benchmark.observations import ground_truth_at
+
+    gt = ground_truth_at(body, [truth], abs_t[None].to(torch.float64))
+    mpjpe = (output.joints[0].cpu() - gt.joints[0].cpu().to(output.joints.dtype)).norm(dim=-1).mean()
+    R_gt = roma.rotvec_to_rotmat(truth.resample(abs_t).poses[:, 0].double())
+    R_fit = rot[0, :, 0].cpu().double()
+    geo = roma.rotmat_geodesic_distance(R_fit, R_gt) * 180.0 / math.pi
+    a, b = _yaw_forward(R_fit), _yaw_forward(R_gt)
+    facing = torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1, 1)))
+    return {"mpjpe_mm": float(mpjpe) * 1000.0, "root_orientation_err_deg_mean": float(geo.mean()),
+            "facing_err_deg_mean": float(facing.mean()), "facing_err_deg_max": float(facing.max()),
+            "frames_facing_backwards": int((facing > 90).sum())}
+
+
+def convergence(history: list[dict]) -> dict:
+    first, last = history[0]["data_mm"], history[-1]["data_mm"]
+    prev = history[-2]["data_mm"] if len(history) > 1 else first
+    rel = abs(prev - last) / max(abs(prev), 1e-12)
+    return {"data_mm_first": first, "data_mm_last": last, "relative_change_last_interval": rel,
+            "last_interval_steps": history[-1]["step"] - (history[-2]["step"] if len(history) > 1 else 0),
+            "converged": rel < CONVERGED_RELATIVE_CHANGE}
+
+
+def _preview(out: Path, output, truth_vertices, body, out_t, obs) -> str:
+    """Render the preview with the report's renderer if it exists; the message says what happened."""
+    try:
+        from benchmark.report.animate import SequenceMotion, animate
+    except ImportError as exc:
+        return f"preview skipped: the report renderer (benchmark.report.animate) is not available ({exc})"
+    try:
+        fit_v = output.vertices[0].cpu().numpy()
+        fit_j = output.joints[0].cpu().numpy()
+        zeros = np.zeros(len(out_t))
+        motion = SequenceMotion(
+            sequence_id="complete", t=out_t.numpy(), fit_vertices=fit_v, fit_joints=fit_j,
+            gt_vertices=fit_v if truth_vertices is None else truth_vertices, gt_joints=fit_j,
+            root_err_deg=zeros, facing_err_deg=zeros, obs_t=obs.timestamps[0].numpy() - float(obs.timestamps[0, 0]),
+            obs_points=obs.points[0].numpy(), obs_lengths=obs.lengths[0].numpy())
+        path = animate(motion, body, out / "preview.webp", title="complete")
+        return f"preview: {path}"
+    except Exception as exc:  # the renderer is optional; its failure must not lose the fit
+        return f"preview failed ({type(exc).__name__}: {exc}); the motion and meshes are written"
+
+
+def run_complete(args) -> dict:
+    import roma
+
+    from benchmark.body import get_body
+    from benchmark.catalog import get_profile, load_table_spec
+    from benchmark.motion import Motion
+    from benchmark.protocols.completion import decode_output, fit, observation_batch
+    from benchmark.protocols.completion_unit import _loss_vertices
+    from benchmark.registry import make_adapter
+    from benchmark.synthetic.scan_set import write_ply_mesh
+
+    t_begin = time.perf_counter()
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.force:
+        raise FileExistsError(f"{out} exists and is not empty; pass --force to overwrite its files")
+    spec = load_table_spec("table1")
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    profile_name = args.profile or ("full" if device.startswith("cuda") else "quick")
+    profile = get_profile(profile_name, table="table1")
+    body = get_body(args.body, device=device)
+    obs, t_start, window, truth, what = _load_input(Path(args.input), args, body, spec)
+    print(what)
+    n_out = int(round(window * OUTPUT_FPS))
+    out_t = torch.arange(n_out, dtype=torch.float64) / OUTPUT_FPS
+    batch = observation_batch(obs, window, out_t[None], device)
+    adapter = make_adapter(args.prior, size=args.size, weights=args.weights, device=device)
+    obj = spec["objective"]
+    steps = int(args.steps or profile["steps"])
+    print(f"fitting {args.prior} ({args.size}) under the table1 rules: {batch.num_observed} observed frames, "
+          f"up to {int(batch.lengths.max())} points each, window {window:g} s, profile {profile_name!r} "
+          f"({steps} steps, loss vertices {profile.get('loss_vertices', 'all')}), device {device}")
+    t0 = time.perf_counter()
+    state, info = fit(adapter, body, batch, steps=steps, lr=float(obj["lr"]), lambda_prior=float(obj["lambda_prior"]),
+                      generator=torch.Generator().manual_seed(args.seed), device=device,
+                      loss_vertices=_loss_vertices(profile))
+    fit_s = time.perf_counter() - t0
+    output, rot, trans = decode_output(state, body, batch.output_timestamps)
+
+    out.mkdir(parents=True, exist_ok=True)
+    shape = state.shape()[0].detach().cpu()
+    motion = Motion(poses=roma.rotmat_to_rotvec(rot[0].cpu().double()).float(), trans=trans[0].cpu(), timestamps=out_t,
+                    shape=shape, body=body.name, source=f"complete:{args.prior}:{args.input}",
+                    meta={"prior": args.prior, "size": args.size, "input": str(args.input), "window_start_s": t_start,
+                          "points": args.points, "fps": args.fps, "profile": profile_name, "steps": steps,
+                          "seed": args.seed, "table": "table1", "protocol_version": spec["protocol_version"]})
+    motion_path = motion.save(out / "motion.npz")
+    print(f"wrote {motion_path}: {n_out} frames at {OUTPUT_FPS:g} fps (timestamps from the window start)")
+    if args.meshes:
+        mesh_dir = out / "meshes"
+        mesh_dir.mkdir(exist_ok=True)
+        faces = body.faces.cpu().numpy()
+        for t in range(n_out):
+            write_ply_mesh(mesh_dir / f"frame_{t:04d}.ply", output.vertices[0, t].cpu().numpy(), faces)
+        print(f"wrote {n_out} meshes to {mesh_dir}/")
+
+    history = info["history"]
+    diag = {"input": str(args.input), "prior": args.prior, "fit_s": fit_s, "history": history,
+            "convergence": convergence(history)}
+    print("data term (Chamfer, mm, on the loss vertices) by step: "
+          + ", ".join(f"{h['step']}: {h['data_mm']:.2f}" for h in history))
+    c = diag["convergence"]
+    print(f"convergence: {c['data_mm_first']:.2f} -> {c['data_mm_last']:.2f} mm; change over the last "
+          f"{c['last_interval_steps']} steps {100 * c['relative_change_last_interval']:.2f}% "
+          f"({'converged' if c['converged'] else 'still decreasing: more steps (--steps, --profile full) may help'})")
+    truth_vertices = None
+    if truth is not None:
+        abs_t = out_t + t_start
+        if float(abs_t[-1]) > float(truth.timestamps[-1]) + 1e-6 or float(abs_t[0]) < float(truth.timestamps[0]) - 1e-6:
+            print("ground truth: does not cover the output window; no errors against it")
+        else:
+            d = truth_diagnostics(body, rot, output, truth, abs_t)
+            diag["truth"] = d
+            print(f"against the ground truth: MPJPE {d['mpjpe_mm']:.1f} mm; root orientation error "
+                  f"{d['root_orientation_err_deg_mean']:.1f} deg (mean); facing error {d['facing_err_deg_mean']:.1f} deg "
+                  f"(mean), {d['facing_err_deg_max']:.1f} deg (max), {d['frames_facing_backwards']} of {n_out} frames "
+                  "facing backwards")
+    else:
+        print("no ground truth: MPJPE and facing errors are not computed")
+    message = _preview(out, output, truth_vertices, body, out_t, obs) if not args.no_preview else "preview: not asked"
+    print(message)
+    diag["preview"] = message
+    diag["wall_s"] = time.perf_counter() - t_begin
+    (out / "diagnostics.json").write_text(json.dumps(diag, indent=2))
+    print(f"done in {diag['wall_s']:.1f} s (fit {fit_s:.1f} s); diagnostics: {out / 'diagnostics.json'}")
+    return diag
+
+
+def add_complete_command(sub) -> None:
+    p = sub.add_parser("complete", help="fit a prior to one capture (scan folder, .npz motion or BVH) and write the "
+                       "completed motion", formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("input", help="scan folder, harness/AMASS .npz, or .bvh")
+    p.add_argument("--prior", required=True, help="prior name (python -m benchmark list priors)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--points", type=int, default=None, help="points per observed frame (default: all)")
+    p.add_argument("--fps", type=float, default=10.0, help="observed frames per second")
+    p.add_argument("--window", type=float, default=None, help="seconds to complete (default: table1's 4 s)")
+    p.add_argument("--start", type=float, default=0.0, help="window start, seconds after the first frame")
+    p.add_argument("--meshes", action="store_true", help="write one PLY mesh per output frame")
+    p.add_argument("--no-preview", action="store_true", help="skip the animated preview")
+    p.add_argument("--profile", default=None, help="steps and loss vertices from this profile (default: quick on CPU)")
+    p.add_argument("--steps", type=int, default=None, help="override the profile's steps")
+    p.add_argument("--device", default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
+    p.add_argument("--weights", default=None, help="checkpoint for --size paper")
+    p.add_argument("--body", default="anny")
+    p.add_argument("--up", choices=["y", "z"], default="y", help="scan folders: up axis")
+    p.add_argument("--units", choices=["m", "cm", "mm"], default="m", help="scan folders: units")
+    p.add_argument("--capture-fps", type=float, default=None, help="scan folders without timestamps: their rate")
+    p.add_argument("--force", action="store_true", help="write into a non-empty --out")
+    p.set_defaults(func=lambda args: 0 if run_complete(args) else 1)

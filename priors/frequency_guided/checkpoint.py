@@ -1,0 +1,169 @@
+"""Frequency-guided checkpoints, read strictly: the official ``pretrained_priorD.pth`` + VPoser v1.0
+``TR00_E096.pt`` pair (paper size) and the project's ``priors/weights/frequency_guided.pt`` (embedded size).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import torch
+
+from priors.vposer.checkpoint import (
+    V1_WHERE_TO_GET as VPOSER_V1_WHERE,
+    is_vposer_v1_state,
+    load_vposer_v1_state,
+    torch_load_cpu,
+)
+from priors.frequency_guided.model import FrequencyGuidedNetwork, MotionPrior, PAPER_CONFIG
+
+log = logging.getLogger(__name__)
+
+
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "frequency_guided.pt"
+OFFICIAL_PRIOR_NAME = "pretrained_priorD.pth"
+OFFICIAL_VPOSER_NAME = "TR00_E096.pt"
+DDP_PREFIX = "module."
+WHERE_TO_GET = (
+    "the motion prior pretrained_priorD.pth (+ motion_prior_config.ini) is public on Google Drive, file id "
+    "12LAlvHJ34qNkOqCVawSDjBquQH6MI2Ma (linked from JchenXu/human-motion-prior, action_recognition/README.md); "
+    f"{VPOSER_V1_WHERE}. Pass both, e.g. `--weights frequency-guided=/path/folder` (a folder holding "
+    f"{OFFICIAL_PRIOR_NAME} and {OFFICIAL_VPOSER_NAME}) or `--weights frequency-guided=/p/{OFFICIAL_PRIOR_NAME},/p/{OFFICIAL_VPOSER_NAME}`"
+)
+TRAIN_COMMAND = "python -m benchmark train frequency-guided  (or: python -m priors.frequency_guided.train --out priors/weights)"
+
+
+# -- checkpoint loading ------------------------------------------------------------------------
+def _strip_ddp(state: dict, file) -> dict:
+    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+        state = state["state_dict"]
+    if not isinstance(state, dict) or not state or not all(isinstance(k, str) for k in state):
+        raise ValueError(f"{file}: not a state dict of Xu et al.'s MotionPrior (expected {OFFICIAL_PRIOR_NAME}); found {type(state).__name__}")
+    pref = [k.startswith(DDP_PREFIX) for k in state]
+    if all(pref):
+        return {k[len(DDP_PREFIX):]: v for k, v in state.items()}
+    if any(pref):
+        raise KeyError(f"{file}: some keys start with {DDP_PREFIX!r} and some do not, e.g. "
+                       f"{[k for k in state if not k.startswith(DDP_PREFIX)][:5]}: not a plain DDP state dict")
+    return dict(state)
+
+
+def load_motion_prior_state(state: object, model: MotionPrior, file="<state dict>") -> list[str]:
+    """Copy the official ``pretrained_priorD.pth`` content into ``model`` strictly (``module.`` stripped).
+
+    Every MotionPrior key (unused layers included; BatchNorm ``num_batches_tracked`` optional) must be
+    present with its shape, and nothing else. Returns the loaded keys (unprefixed).
+    """
+    raw = _strip_ddp(state, file)
+    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    missing = [k for k in expected if k not in raw and not k.endswith("num_batches_tracked")]
+    unexpected = sorted(k for k in raw if k not in expected)
+    if missing or unexpected:
+        hint = ""
+        if any(k.startswith("bodyprior_enc_bn1") for k in unexpected):
+            hint = f" (this looks like VPoser v1.0 {OFFICIAL_VPOSER_NAME}, not the motion prior)"
+        elif any(k.endswith(".weight") and k[:-7] + ".weight_v" in expected for k in unexpected):
+            hint = " (plain 'weight' where weight_g/weight_v are expected: the file was saved without weight norm)"
+        raise KeyError(
+            f"{file}: MotionPrior state dict does not match the paper network: missing keys {missing}, "
+            f"unexpected keys {unexpected}{hint}. Expected the 'module.'-prefixed {OFFICIAL_PRIOR_NAME}; {WHERE_TO_GET}"
+        )
+    bad = [f"{DDP_PREFIX}{k}: file {tuple(raw[k].shape) if torch.is_tensor(raw[k]) else type(raw[k]).__name__}, expected {s}"
+           for k, s in expected.items() if k in raw and (not torch.is_tensor(raw[k]) or tuple(raw[k].shape) != s)]
+    if bad:
+        raise ValueError(f"{file}: MotionPrior shape mismatch (paper config {PAPER_CONFIG}): {bad}")
+    mapped = {k: raw[k] for k in expected if k in raw}
+    model.load_state_dict(mapped, strict=False)
+    return sorted(mapped)
+
+
+def _looks_like_motion_prior(state) -> bool:
+    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+        state = state["state_dict"]
+    return isinstance(state, dict) and any(k in state for k in ("module.dct_att.weight", "dct_att.weight"))
+
+
+def resolve_paper_weights(weights) -> tuple[Path, Path]:
+    """(motion prior file, VPoser v1 file) from a folder, ``"a,b"`` or a pair (see module docstring)."""
+    if isinstance(weights, (tuple, list)):
+        parts = [Path(str(w)).expanduser() for w in weights]
+    else:
+        s = str(weights)
+        parts = [Path(p.strip()).expanduser() for p in s.split(",")] if "," in s else [Path(s).expanduser()]
+    if len(parts) == 1:
+        folder = parts[0]
+        if not folder.exists():
+            raise FileNotFoundError(f"frequency-guided weights: {folder} does not exist. {WHERE_TO_GET}")
+        if not folder.is_dir():
+            raise ValueError(
+                f"frequency-guided size 'paper' needs two files (the motion prior and VPoser v1.0), got one file {folder}: "
+                f"pass a folder or 'prior.pth,vposer.pt'. {WHERE_TO_GET}"
+            )
+
+        def find(name: str, pattern: str) -> Path:
+            exact = sorted(folder.rglob(name))
+            if len(exact) == 1:
+                return exact[0]
+            if len(exact) > 1:
+                raise ValueError(f"several {name} under {folder}: {[str(p) for p in exact]}; pass the two files explicitly")
+            loose = sorted(folder.rglob(pattern))
+            if len(loose) == 1:
+                return loose[0]
+            raise FileNotFoundError(
+                f"no {name} under {folder} (searched recursively; {len(loose)} '{pattern}' files: "
+                f"{[str(p) for p in loose][:10]}). Expected layout: {folder}/{OFFICIAL_PRIOR_NAME} and "
+                f"{folder}/vposer_v1_0/snapshots/{OFFICIAL_VPOSER_NAME}. {WHERE_TO_GET}"
+            )
+
+        return find(OFFICIAL_PRIOR_NAME, "*.pth"), find(OFFICIAL_VPOSER_NAME, "*.pt")
+    if len(parts) != 2:
+        raise ValueError(f"frequency-guided weights: expected a folder or two files 'prior.pth,vposer.pt', got {len(parts)} paths {parts}")
+    for p in parts:
+        if not p.is_file():
+            raise FileNotFoundError(f"frequency-guided weights: {p} is not a file. {WHERE_TO_GET}")
+    return parts[0], parts[1]
+
+
+def load_paper_weights(weights, network: FrequencyGuidedNetwork) -> dict:
+    """Load the official pair into a paper-size network strictly; returns a report dict."""
+    a, b = resolve_paper_weights(weights)
+    sa, sb = torch_load_cpu(a), torch_load_cpu(b)
+    if _looks_like_motion_prior(sb) and not _looks_like_motion_prior(sa):
+        a, b, sa, sb = b, a, sb, sa
+    if not _looks_like_motion_prior(sa):
+        raise KeyError(
+            f"frequency-guided: neither {a} nor {b} holds the motion prior (no 'module.dct_att.weight' key); "
+            f"first keys: {a.name}: {list(sa)[:5] if isinstance(sa, dict) else type(sa).__name__}, "
+            f"{b.name}: {list(sb)[:5] if isinstance(sb, dict) else type(sb).__name__}. {WHERE_TO_GET}"
+        )
+    if not is_vposer_v1_state(sb):
+        keys = list(sb)[:8] if isinstance(sb, dict) else type(sb).__name__
+        raise KeyError(f"{b}: not VPoser v1.0 (no 'bodyprior_enc_bn1.weight' key; first keys {keys}). {VPOSER_V1_WHERE}")
+    mp_keys = load_motion_prior_state(sa, network.motion_prior, a)
+    vp_keys = load_vposer_v1_state(sb, network.vposer, b)
+    log.info("frequency-guided paper weights: motion prior %s (%d tensors), VPoser v1 %s (%d tensors)", a, len(mp_keys), b, len(vp_keys))
+    return {"motion_prior_file": str(a), "vposer_file": str(b), "motion_prior_keys": len(mp_keys), "vposer_keys": len(vp_keys)}
+
+
+def load_project_checkpoint(path: str | Path) -> FrequencyGuidedNetwork:
+    """The embedded network from ``priors/weights/frequency_guided.pt`` (strict)."""
+    path = Path(path)
+    if path.is_dir() or "," in str(path):
+        raise ValueError(f"{path} looks like the official release: load it with size='paper'; size 'embedded' reads {DEFAULT_WEIGHTS.name}")
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict) or not isinstance(ckpt.get("config"), dict):
+        raise ValueError(f"{path}: expected {{'state_dict', 'config'}} written by priors.frequency_guided.train.train_frequency_guided; retrain: {TRAIN_COMMAND}")
+    cfg = ckpt["config"]
+    need = set(PAPER_CONFIG)
+    if not need <= set(cfg):
+        raise ValueError(f"{path}: field 'config' lacks {sorted(need - set(cfg))}; retrain: {TRAIN_COMMAND}")
+    net = FrequencyGuidedNetwork({k: cfg[k] for k in PAPER_CONFIG})
+    sd = ckpt["state_dict"]
+    expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    missing = [k for k in expected if k not in sd and not k.endswith("num_batches_tracked")]
+    unexpected = sorted(k for k in sd if k not in expected)
+    bad = [f"{k}: file {tuple(sd[k].shape)}, expected {s}" for k, s in expected.items() if k in sd and tuple(sd[k].shape) != s]
+    if missing or unexpected or bad:
+        raise KeyError(f"{path}: does not match its config {cfg}: missing {missing}, unexpected {unexpected}, shape mismatches {bad}")
+    net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in sd.items()}, strict=False)
+    return net

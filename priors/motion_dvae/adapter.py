@@ -1,0 +1,274 @@
+"""Motion-DVAE as a :class:`~priors.base.PriorAdapter` (and its ONNX decoder wrapper)."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+from torch import nn
+
+from benchmark.interpolate import lerp_frames, slerp_frames
+from benchmark.skeleton import NUM_JOINTS
+from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
+from priors.motion_dvae.model import (
+    FPS,
+    MotionDVAE,
+    PAPER_CONFIG,
+    STATE_DIM,
+    body_points,
+    canonicalise,
+    motion_state,
+    state_to_motion,
+    uncanonicalise,
+)
+from priors.motion_dvae.checkpoint import (
+    DEFAULT_WEIGHTS,
+    OFFICIAL_UNKNOWN,
+    load_official,
+    load_state_strict,
+    read_project_checkpoint,
+)
+from priors.training import embedded_out_dir, embedded_weights
+
+
+# -- the adapter -----------------------------------------------------------------------------
+def _regular_30fps(timestamps: torch.Tensor, fps: float = FPS, tol: float = 1e-4) -> bool:
+    t = timestamps.to(torch.float64)
+    if t.shape[1] < 2:
+        return False
+    return bool(((t[:, 1:] - t[:, :-1]) - 1.0 / fps).abs().max() < tol)
+
+
+def _grid_frames(window_s: float, frames: int = 30, fps: float = FPS) -> int:
+    """Grid length the completion protocol asks for (mirrors benchmark.protocols.completion._grid)."""
+    return max(1, math.ceil(window_s * fps / frames - 1e-9)) * frames
+
+
+class _DecoderExport(nn.Module):
+    """(x0 (B, 138), z (B, T, 48)) -> (rotations (B, T+1, 22, 3, 3), trans (B, T+1, 3)) canonical."""
+
+    def __init__(self, model: MotionDVAE):
+        super().__init__()
+        self.model = model
+
+    def forward(self, x0: torch.Tensor, z: torch.Tensor):
+        states = self.model.generate(x0, z)
+        rot, trans = state_to_motion(states)
+        return rot, trans
+
+
+class MotionDVAEPrior(PriorAdapter):
+    """Motion-DVAE as a completion prior (module docstring: latents, prior term, frames)."""
+
+    name = "motion-dvae"
+    paper = "Fiche et al., Motion-DVAE: Unsupervised learning for fast human motion denoising (MIG 2023)"
+    window = WindowSpec(kind="fixed", frames=30, fps=FPS)
+    encodes_translation = True
+    encodes_root_orientation = True
+    heading_normalised = True
+    joints = tuple(range(1, NUM_JOINTS))
+    shape_conditioned = False
+    has_encoder = True
+    sixd_layout = None
+    frozen_network = "net"
+    prior_term_kind = "learned"  # or "l2"
+
+    def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
+        super().__init__(size=size, weights=weights, device=device)
+        if size == "paper":
+            if weights is None:
+                raise ValueError(f"motion-dvae size 'paper' needs official weights, and none are known: {OFFICIAL_UNKNOWN}. "
+                                 "Use size='embedded' (the project's weights), or map an official file with "
+                                 "priors.motion_dvae.checkpoint.load_official(path, key_map=...)")
+            self.net = load_official(weights)
+        elif size == "embedded":
+            path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS)
+            sd, cfg = read_project_checkpoint(path)
+            self.net = MotionDVAE(**cfg)
+            load_state_strict(self.net, sd, str(path))
+            self.weights_path = str(path)
+        else:
+            raise ValueError(f"motion-dvae: unknown size {size!r}; expected 'embedded' or 'paper'")
+        self.freeze_network(device)
+
+    @classmethod
+    def from_network(cls, net: MotionDVAE, device="cpu") -> "MotionDVAEPrior":
+        """An adapter around an in-memory network (tests, freshly trained models)."""
+        self = cls.__new__(cls)
+        PriorAdapter.__init__(self, size="embedded", weights=None)
+        self.net = net
+        self.freeze_network(device)
+        return self
+
+    @property
+    def device(self) -> torch.device:
+        return self.net.state_mean.device
+
+    @property
+    def z_dim(self) -> int:
+        return self.net.z_dim
+
+    @classmethod
+    def paper_network(cls) -> MotionDVAE:
+        """The paper-size network (z 48, LSTM hidden 1024, MLP hidden 1024) with random weights."""
+        return MotionDVAE(**PAPER_CONFIG).eval()
+
+    # -- completion API
+    def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        """x0 = the training mean first-frame state; z = an ancestral sample of the learned prior
+        over the protocol's grid (``ceil(window_s) * 30`` frames, so T - 1 latents)."""
+        T = _grid_frames(batch.window_s, self.window.frames, self.window.fps)
+        B = batch.batch_size
+        with torch.no_grad():
+            x0 = self.net.x0_mean.expand(B, -1).clone()
+            z = self.net.sample_prior(x0, T - 1, generator=generator)
+        return {"x0": x0, "z": z}
+
+    def _check_latents(self, latents: dict, where: str):
+        if "x0" not in latents or "z" not in latents:
+            raise ValueError(f"motion-dvae.{where}: latents must hold 'x0' (B, {STATE_DIM}) and 'z' (B, T-1, {self.z_dim}); "
+                             f"got keys {sorted(latents)}")
+        x0, z = latents["x0"], latents["z"]
+        if x0.dim() != 2 or x0.shape[1] != STATE_DIM:
+            raise ValueError(f"motion-dvae.{where}: latents['x0'] must be (B, {STATE_DIM}), got {tuple(x0.shape)}")
+        if z.dim() != 3 or z.shape[0] != x0.shape[0] or z.shape[2] != self.z_dim:
+            raise ValueError(f"motion-dvae.{where}: latents['z'] must be (B, T-1, {self.z_dim}) with B = {x0.shape[0]}, got {tuple(z.shape)}")
+        return x0, z
+
+    def decode(self, latents: dict[str, torch.Tensor], timestamps: torch.Tensor, shape: torch.Tensor | None = None) -> Decoded:
+        """Motion at the 30 fps grid ``timestamps`` (B, T) with T = z.shape[1] + 1 (frame 0 = x0):
+        rotations (B, T, 22, 3, 3) and translation (B, T, 3) in the canonical frame."""
+        x0, z = self._check_latents(latents, "decode")
+        B, T = timestamps.shape
+        if B != x0.shape[0] or T != z.shape[1] + 1:
+            raise ValueError(f"motion-dvae.decode: timestamps {tuple(timestamps.shape)} must be (B, T) = "
+                             f"({x0.shape[0]}, {z.shape[1] + 1}) (one frame per latent z_t plus frame 0)")
+        if T > 1 and not _regular_30fps(timestamps, self.window.fps):
+            raise ValueError("motion-dvae.decode: timestamps must be a regular 30 fps grid (the model is recurrent at 30 fps); "
+                             "the protocol interpolates to other times")
+        states = self.net.generate(x0, z)
+        rot, trans = state_to_motion(states)
+        return Decoded(rotations=rot, trans=trans, extra={"state": states})
+
+    def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B,) learned: -1/(T-1) sum_t log N(z_t; prior(h_{t-1})); l2: mean over frames of |z_t|^2."""
+        x0, z = self._check_latents(latents, "prior_term")
+        if self.prior_term_kind == "learned":
+            return self.net.prior_nll(x0, z)
+        if self.prior_term_kind == "l2":
+            return z.square().sum(-1).mean(-1)
+        raise ValueError(f"motion-dvae: prior_term_kind must be 'learned' or 'l2', got {self.prior_term_kind!r}")
+
+    # -- encoders
+    def _prepare(self, rotations, trans, timestamps, where: str):
+        if rotations.dim() != 5 or rotations.shape[2:] != (NUM_JOINTS, 3, 3):
+            raise ValueError(f"motion-dvae.{where}: rotations must be (B, T, {NUM_JOINTS}, 3, 3), got {tuple(rotations.shape)}")
+        B, T = rotations.shape[:2]
+        if trans is None or tuple(trans.shape) != (B, T, 3):
+            raise ValueError(f"motion-dvae.{where}: trans must be (B, T, 3) = {(B, T, 3)} (the model encodes translation), "
+                             f"got {None if trans is None else tuple(trans.shape)}")
+        if tuple(timestamps.shape) != (B, T):
+            raise ValueError(f"motion-dvae.{where}: timestamps must be (B, T) = {(B, T)}, got {tuple(timestamps.shape)}")
+        dev = self.device
+        rot, tr, ts = rotations.to(dev, torch.float32), trans.to(dev, torch.float32), timestamps.to(dev, torch.float64)
+        grid = None
+        if not _regular_30fps(ts):
+            span = float((ts[:, -1] - ts[:, 0]).max())
+            n = int(math.floor(span * FPS + 1e-6)) + 1
+            if n < 2:
+                raise ValueError(f"motion-dvae.{where}: the motion spans {span:.3f} s, less than one 30 fps frame")
+            grid = ts[:, :1] + torch.arange(n, device=dev, dtype=torch.float64) / FPS
+            rot, tr = slerp_frames(rot, ts, grid), lerp_frames(tr, ts, grid)
+        rot_c, tr_c, yaw, origin = canonicalise(rot, tr)
+        return motion_state(rot_c, tr_c), rot_c, tr_c, yaw, origin, grid
+
+    @torch.no_grad()
+    def encode_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Posterior means ``{"x0": (B, 138), "z": (B, T-1, 48)}`` of a clean motion.
+
+        The motion is canonicalised at its first frame (decode returns the canonical frame: the
+        caller aligns heading and ground-plane offset) and, if its timestamps are not a 30 fps grid,
+        resampled to one from its first timestamp (then T is the grid's length). x0 is the observed
+        first state (x_0 is given in the DVAE); z_t the clean encoder's posterior means, fed back.
+        """
+        states, *_ = self._prepare(rotations, trans, timestamps, "encode_motion")
+        xn = self.net.normalise(states)
+        z, _, _ = self.net.encoder(xn, xn[:, 0], sample=False)
+        return {"x0": states[:, 0].clone(), "z": z}
+
+    def denoise_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor,
+                       mode: str = "regression", iterations: int = 50, lr: float = 3e-4, seed: int = 0) -> Decoded:
+        """Denoise noisy motions (paper section 4): rotations (B, T, 22, 3, 3), trans (B, T, 3),
+        timestamps (B, T) -> Decoded (world frame, same timestamps).
+
+        mode "regression": one forward pass (initial-state predictor mean, denoising-encoder
+        posterior means, decoder). "optimisation": a copy of the denoising encoder, initial-state and
+        noise predictors is fine-tuned on this batch with the unsupervised objective for
+        ``iterations`` Adam steps (``lr``; the noise of the reparameterised samples drawn from
+        ``seed``), then the same forward pass with the copy; the adapter's own weights are unchanged.
+        Non-30 fps input is resampled to 30 fps and the result interpolated back.
+        """
+        if mode not in ("regression", "optimisation"):
+            raise ValueError(f"motion-dvae.denoise_motion: mode must be 'regression' or 'optimisation', got {mode!r}")
+        with torch.no_grad():
+            states, rot_c, tr_c, yaw, origin, grid = self._prepare(rotations, trans, timestamps, "denoise_motion")
+        net = self.net
+        nets = (net.denoise_encoder, net.init_state, net.noise)
+        info = {"mode": mode}
+        if mode == "optimisation" and iterations > 0:
+            nets = tuple(copy.deepcopy(m) for m in nets)
+            params = [p for m in nets for p in m.parameters()]
+            for p in params:
+                p.requires_grad_(True)
+            with torch.no_grad():
+                obs = body_points(rot_c, tr_c, net.rest_joints)
+            opt = torch.optim.Adam(params, lr=lr)
+            gen = torch.Generator(device=states.device).manual_seed(seed)
+            losses = []
+            with torch.enable_grad():
+                for _ in range(int(iterations)):
+                    parts = net.denoise_loss(states, obs, beta=1.0, nets=nets, generator=gen)
+                    opt.zero_grad(set_to_none=True)
+                    parts["loss"].backward()
+                    opt.step()
+                    losses.append(float(parts["loss"].detach()))
+            info["losses"] = losses
+        with torch.no_grad():
+            out = net.denoise_forward(states, sample=False, nets=nets)
+            rot, tr = state_to_motion(net.unnormalise(out["xn"]))
+            rot, tr = uncanonicalise(rot, tr, yaw, origin)
+            if grid is not None:
+                ts = timestamps.to(rot.device, torch.float64)
+                rot, tr = slerp_frames(rot, grid, ts), lerp_frames(tr, grid, ts)
+        return Decoded(rotations=rot, trans=tr, extra={"x0": out["x0"], "z": out["z"], **info})
+
+    # -- export
+    def export_decoder(self) -> ExportSpec:
+        """ONNX: (x0 (B, 138), z (B, T, 48)) -> (rotations (B, T+1, 22, 3, 3), trans (B, T+1, 3)).
+
+        The canonical-frame decode path of :meth:`decode` (one LSTM over the sequence, MLP heads,
+        axis-angle -> matrices). Batch is dynamic; T is the example's (29 latents, a 1 s window)
+        and should be taken as fixed in the exported graph. Example latents: the training mean x0
+        and an ancestral prior sample (seed 0).
+        """
+        g = torch.Generator().manual_seed(0)
+        with torch.no_grad():
+            x0 = self.net.x0_mean.expand(2, -1).clone()
+            z = self.net.sample_prior(x0, self.window.frames - 1, generator=g)
+        return ExportSpec(module=_DecoderExport(self.net).eval(), example_inputs=(x0, z),
+                          input_names=["x0", "z"], output_names=["rotations", "trans"])
+
+    @classmethod
+    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
+        """``python -m benchmark train motion-dvae``: retrain the embedded weights (train_motion_dvae).
+
+        ``steps`` is the DVAE phase's step count; the denoising phase gets 2/5 as many."""
+        from priors.motion_dvae.train import train_motion_dvae
+
+        out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
+        kw = {}
+        if steps:
+            kw = {"steps": int(steps), "denoise_steps": max(1, 2 * int(steps) // 5)}
+        _, record = train_motion_dvae(out, seed=seed, **kw)
+        return record

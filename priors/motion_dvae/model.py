@@ -1,0 +1,447 @@
+"""Motion-DVAE: the canonical frame and state vectors, the networks at any size and their losses (pure torch, no I/O).
+
+See the package docstring (:mod:`priors.motion_dvae`) for the method and the sizes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from benchmark.body.lbs import forward_kinematics
+from benchmark.frames import from_heading_frame, ground_origin, heading, to_heading_frame, yaw_matrix
+from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from benchmark.skeleton import NUM_JOINTS
+
+
+FPS = 30.0
+POSE_DIM = 3 + 3 + 3 * (NUM_JOINTS - 1)  # trans, root, 21 body joints = 69
+STATE_DIM = 2 * POSE_DIM  # + velocities = 138
+PAPER_CONFIG = {"z_dim": 48, "hidden": 1024, "mlp_hidden": 1024}
+EMBEDDED_CONFIG = {"z_dim": 48, "hidden": 256, "mlp_hidden": 256}
+
+MARKER_OFFSET = 0.1  # metres, virtual markers along each joint frame's x and z axes
+POINT_WEIGHT = 100.0  # weight of the squared point errors (metres^2) in the DVAE loss
+KL_ANNEAL_FRACTION = 0.25  # paper: KL annealing over the first 50 of 200 epochs
+DENOISE_SIGMA_RANGE = (0.05, 0.25)  # rad, axis-angle noise of the denoising training copies
+NOISE_PRIOR_SHAPE = 100.0  # Inverse-Gamma shape a0 of the per-frame noise variance (large: ~Gaussian)
+NOISE_PRIOR_SCALE_M = 0.1  # prior mean precision a0 / b0 = 1 / NOISE_PRIOR_SCALE_M^2
+LOGVAR_RANGE = (-12.0, 8.0)
+DEC_LOGVAR_RANGE = (-7.0, 2.0)  # decoder variance bounds (standardised units)
+
+
+# -- geometry: canonical frame, state vectors, body points -------------------------------------
+def canonicalise(rot: torch.Tensor, trans: torch.Tensor):
+    """Remove the first frame's heading and ground-plane position (HuMoR's canonical frame, y up).
+
+    rot (B, T, 22, 3, 3) local rotations (joint 0 = world root orientation), trans (B, T, 3).
+    Returns (rot_c, trans_c, yaw (B,), origin (B, 3)) with ``R_root_c = Ry(-yaw) R_root`` and
+    ``trans_c = Ry(-yaw) (trans - origin)``, origin = (x_0, 0, z_0): a rigid motion about a
+    vertical axis, the same for every frame; :func:`uncanonicalise` inverts it.
+    """
+    yaw = heading(rot[:, 0, 0])
+    origin = ground_origin(trans)
+    rot_c, trans_c = to_heading_frame(rot, trans, yaw_matrix(-yaw), origin)  # Ry(-yaw), (B, 3, 3)
+    return rot_c, trans_c, yaw, origin
+
+
+def uncanonicalise(rot_c: torch.Tensor, trans_c: torch.Tensor, yaw: torch.Tensor, origin: torch.Tensor):
+    """Inverse of :func:`canonicalise`."""
+    return from_heading_frame(rot_c, trans_c, yaw_matrix(yaw), origin)
+
+
+def unwrap_rotvec(aa: torch.Tensor) -> torch.Tensor:
+    """(B, T, ..., 3) rotation vectors made continuous in time (dim 1).
+
+    Each vector v (angle in [0, pi]) is replaced by its equivalent ``v - 2 pi v/|v|`` (angle - 2 pi)
+    when that is closer to the previous frame's (already unwrapped) vector.
+    """
+    out = [aa[:, 0]]
+    for t in range(1, aa.shape[1]):
+        v = aa[:, t]
+        n = v.norm(dim=-1, keepdim=True)
+        alt = v - 2 * math.pi * v / n.clamp_min(1e-8)
+        prev = out[-1]
+        use_alt = ((alt - prev).norm(dim=-1, keepdim=True) < (v - prev).norm(dim=-1, keepdim=True)) & (n > 1e-8)
+        out.append(torch.where(use_alt, alt, v))
+    return torch.stack(out, dim=1)
+
+
+def canonical_poses(windows: torch.Tensor, chunk: int = 2048) -> torch.Tensor:
+    """(N, F, 69) raw windows (``priors.training.motion_windows``: axis-angle 22x3, translation) ->
+    (N, F, 69) canonical pose sequences [trans (3), root aa (3), body aa (63)], unwrapped in time."""
+    out = []
+    for i in range(0, windows.shape[0], chunk):
+        w = windows[i : i + chunk]
+        poses = w[..., : NUM_JOINTS * 3].unflatten(-1, (NUM_JOINTS, 3))
+        rot_c, trans_c, _, _ = canonicalise(axis_angle_to_matrix(poses), w[..., NUM_JOINTS * 3:])
+        aa = unwrap_rotvec(matrix_to_axis_angle(rot_c))
+        out.append(torch.cat([trans_c, aa.flatten(-2)], dim=-1))
+    return torch.cat(out)
+
+
+def pose_to_state(pos: torch.Tensor, fps: float = FPS) -> torch.Tensor:
+    """(B, T, 69) pose sequences -> (B, T, 138) states (finite-difference velocities appended)."""
+    vel = (pos[:, 1:] - pos[:, :-1]) * fps
+    return torch.cat([pos, torch.cat([vel[:, :1], vel], dim=1)], dim=-1)
+
+
+def motion_state(rot_c: torch.Tensor, trans_c: torch.Tensor, fps: float = FPS) -> torch.Tensor:
+    """Canonical rotations (B, T, 22, 3, 3) and translation (B, T, 3) -> states (B, T, 138)."""
+    if rot_c.shape[1] < 2:
+        raise ValueError(f"motion-dvae: a motion needs at least 2 frames, got {rot_c.shape[1]}")
+    aa = unwrap_rotvec(matrix_to_axis_angle(rot_c))  # (B, T, 22, 3)
+    return pose_to_state(torch.cat([trans_c, aa.flatten(-2)], dim=-1), fps)
+
+
+def windows_to_state(windows: torch.Tensor, fps: float = FPS) -> torch.Tensor:
+    """(N, F, 69) raw windows -> (N, F, 138) canonical states."""
+    return pose_to_state(canonical_poses(windows), fps)
+
+
+def noisy_poses(pos: torch.Tensor, generator: torch.Generator | None = None,
+                sigma_range=DENOISE_SIGMA_RANGE) -> tuple[torch.Tensor, torch.Tensor]:
+    """Noisy copies of canonical pose sequences (N, F, 69) for the denoising phase.
+
+    sigma ~ U(sigma_range) per sequence, times N(0, 1) on every joint's axis-angle (root included;
+    translation clean), then re-canonicalised at the noisy first frame (its heading), as a noisy
+    input is at test time. The noise is added to the canonical root rotation vector (the denoise
+    table adds it to the world one: the same noise law up to the heading, a documented
+    approximation that avoids a per-step conversion of all 22 joints). Returns (noisy, sigma (N,)).
+    """
+    N = pos.shape[0]
+    lo, hi = sigma_range
+    sigma = lo + (hi - lo) * torch.rand(N, generator=generator)
+    noise = torch.randn(pos[..., 3:].shape, generator=generator) * sigma[:, None, None]
+    aa = pos[..., 3:] + noise.to(pos.device)
+    root = axis_angle_to_matrix(aa[..., :3])  # (N, F, 3, 3)
+    Rinv = yaw_matrix(-heading(root[:, 0]))  # (N, 3, 3)
+    root_aa = unwrap_rotvec(matrix_to_axis_angle(Rinv[:, None] @ root))
+    trans = pos[..., :3] @ Rinv.transpose(-1, -2)  # frame 0 is at the origin of the ground plane already
+    return torch.cat([trans, root_aa, aa[..., 3:]], dim=-1), sigma
+
+
+def rotvec_to_matrix(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) rotation vectors -> (..., 3, 3) by Rodrigues' formula, written without reshapes to
+    fixed batch sizes (ONNX-traceable with a dynamic batch) and smooth at 0 (angle sqrt(|v|^2 + 1e-12))."""
+    theta = torch.sqrt((v * v).sum(-1, keepdim=True) + 1e-12)
+    k = v / theta
+    x, y, z = k[..., 0], k[..., 1], k[..., 2]
+    o = x * 0.0  # not zeros_like: the ONNX exporter folds that into a constant of the example's batch
+    K = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).unflatten(-1, (3, 3))
+    s, c = torch.sin(theta)[..., None], torch.cos(theta)[..., None]
+    eye = torch.eye(3, dtype=v.dtype, device=v.device)
+    return eye + s * K + (1 - c) * (K @ K)
+
+
+def state_to_motion(state: torch.Tensor):
+    """States (..., 138) -> local rotations (..., 22, 3, 3) and translation (..., 3) (positions and
+    orientations of the state; its velocities are not used)."""
+    trans = state[..., :3]
+    aa = state[..., 3:POSE_DIM].unflatten(-1, (NUM_JOINTS, 3))
+    return rotvec_to_matrix(aa), trans
+
+
+def body_points(rot: torch.Tensor, trans: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
+    """(..., 66, 3) body points: 22 FK joints on ``rest`` (22, 3) + 2 virtual markers per joint
+    (``MARKER_OFFSET`` along the joint frame's x and z axes), translated by ``trans``."""
+    g_rot, joints = forward_kinematics(rot, rest)
+    joints = joints + trans[..., None, :]
+    mx = joints + MARKER_OFFSET * g_rot[..., :, 0]
+    mz = joints + MARKER_OFFSET * g_rot[..., :, 2]
+    return torch.cat([joints, mx, mz], dim=-2)
+
+
+# -- the network -------------------------------------------------------------------------------
+class MLP(nn.Module):
+    """HuMoR's MLP pattern: Linear, then [GroupNorm(16) -> ReLU -> Linear] for each further layer.
+
+    ``sizes = [in, h1, h2, out]`` gives 2 hidden layers. Works on (..., in) (flattened for the norm).
+    """
+
+    def __init__(self, sizes: list[int], groups: int = 16):
+        super().__init__()
+        layers: list[nn.Module] = [nn.Linear(sizes[0], sizes[1])]
+        for i in range(2, len(sizes)):
+            layers += [nn.GroupNorm(groups, sizes[i - 1]), nn.ReLU(), nn.Linear(sizes[i - 1], sizes[i])]
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        lead = x.shape[:-1]
+        return self.net(x.reshape(-1, x.shape[-1])).reshape(*lead, -1)
+
+
+def _zero_last(mlp: MLP) -> None:
+    """Zero the last Linear of an MLP whose output is a residual (training starts from identity) [inferred]."""
+    with torch.no_grad():
+        mlp.net[-1].weight.zero_()
+        mlp.net[-1].bias.zero_()
+
+
+class Encoder(nn.Module):
+    """q(z_t | x_0, z_{1:t-1}, x_{t:T}): anti-causal LSTM over states + forward recurrence over z."""
+
+    def __init__(self, z_dim: int, hidden: int, mlp_hidden: int):
+        super().__init__()
+        self.z_dim = z_dim
+        self.bwd_rnn = nn.LSTM(STATE_DIM, hidden, batch_first=True)
+        self.fwd_cell = nn.LSTMCell(z_dim + STATE_DIM, hidden)
+        self.post_mean = MLP([2 * hidden, mlp_hidden, mlp_hidden, z_dim])
+        self.post_logvar = MLP([2 * hidden, mlp_hidden, mlp_hidden, z_dim])
+
+    def backward_features(self, xn: torch.Tensor) -> torch.Tensor:
+        """(B, T, S) standardised states -> (B, T, H) anti-causal features b_t (summary of x_{t:T})."""
+        out, _ = self.bwd_rnn(torch.flip(xn, [1]))
+        return torch.flip(out, [1])
+
+    def forward(self, xn: torch.Tensor, x0n: torch.Tensor, sample: bool, generator=None, b=None):
+        """Posterior over z_{1:T-1} for standardised states xn (B, T, S) and x^_0 (B, S).
+
+        sample: draw z_t from q (reparameterised; ``generator`` for the noise) and feed it back,
+        else feed back the posterior mean. Returns (z, q_mean, q_logvar), each (B, T-1, Z).
+        """
+        B, T, _ = xn.shape
+        if b is None:
+            b = self.backward_features(xn)
+        z_prev = xn.new_zeros(B, self.z_dim)
+        state = self.fwd_cell(torch.cat([z_prev, x0n], -1))
+        # The heads' first Linear acts on [f_{t-1}, b_t]: its b-part is computed for all t at once
+        # (the same maths as post_mean([f, b]), fewer sequential operations).
+        Hf = state[0].shape[-1]
+        lin_m, lin_v = self.post_mean.net[0], self.post_logvar.net[0]
+        pre_m = F.linear(b[:, 1:], lin_m.weight[:, Hf:], lin_m.bias)
+        pre_v = F.linear(b[:, 1:], lin_v.weight[:, Hf:], lin_v.bias)
+        rest_m, rest_v = self.post_mean.net[1:], self.post_logvar.net[1:]
+        w_m, w_v = lin_m.weight[:, :Hf], lin_v.weight[:, :Hf]
+        zs, means, logvars = [], [], []
+        for t in range(1, T):
+            f = state[0]
+            mu = rest_m(F.linear(f, w_m) + pre_m[:, t - 1])
+            lv = rest_v(F.linear(f, w_v) + pre_v[:, t - 1]).clamp(*LOGVAR_RANGE)
+            if sample:
+                z = mu + torch.exp(0.5 * lv) * _randn(mu, generator)
+            else:
+                z = mu
+            zs.append(z)
+            means.append(mu)
+            logvars.append(lv)
+            state = self.fwd_cell(torch.cat([z, x0n], -1), state)
+        if not zs:
+            empty = xn.new_zeros(B, 0, self.z_dim)
+            return empty, empty, empty
+        return torch.stack(zs, 1), torch.stack(means, 1), torch.stack(logvars, 1)
+
+
+class InitialStatePredictor(nn.Module):
+    """q(x_0 | y): anti-causal LSTM over the noisy states, MLP heads at frame 0 (residual mean)."""
+
+    def __init__(self, hidden: int, mlp_hidden: int):
+        super().__init__()
+        self.bwd_rnn = nn.LSTM(STATE_DIM, hidden, batch_first=True)
+        self.mean = MLP([hidden, mlp_hidden, mlp_hidden, STATE_DIM])
+        self.logvar = MLP([hidden, mlp_hidden, mlp_hidden, STATE_DIM])
+        _zero_last(self.mean)
+
+    def forward(self, yn: torch.Tensor):
+        out, _ = self.bwd_rnn(torch.flip(yn, [1]))
+        b0 = out[:, -1]  # the anti-causal summary of frames 0..T-1, at frame 0
+        # residual on the noisy first positions/orientations; velocities (finite differences of
+        # noisy rotations, far off the data distribution) start from the data mean (0 standardised)
+        base = torch.cat([yn[:, 0, :POSE_DIM], torch.zeros_like(yn[:, 0, POSE_DIM:])], -1)
+        return base + self.mean(b0), self.logvar(b0).clamp(*LOGVAR_RANGE)
+
+
+class NoisePredictor(nn.Module):
+    """q(v_t | y) = InvGamma(alpha_t, beta_t), one variance per frame, from the denoising encoder's
+    anti-causal features (the paper's noise predictor re-uses the encoder's LSTM + its own MLP)."""
+
+    def __init__(self, hidden: int, mlp_hidden: int):
+        super().__init__()
+        self.head = MLP([hidden, mlp_hidden, mlp_hidden, 2])
+        with torch.no_grad():  # start at the prior: alpha = a0, beta = a0 * s0^2
+            self.head.net[-1].weight.zero_()
+            self.head.net[-1].bias.copy_(torch.tensor([math.log(math.expm1(NOISE_PRIOR_SHAPE)),
+                                                        math.log(math.expm1(NOISE_PRIOR_SHAPE * NOISE_PRIOR_SCALE_M ** 2))]))
+
+    def forward(self, b: torch.Tensor):
+        out = self.head(b)
+        return F.softplus(out[..., 0]) + 1e-3, F.softplus(out[..., 1]) + 1e-6
+
+
+def _randn(like: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+    """Standard normal noise shaped like ``like``, drawn on the generator's device, moved to like's."""
+    dev = generator.device if generator is not None else like.device
+    return torch.randn(like.shape, generator=generator, device=dev, dtype=like.dtype).to(like.device)
+
+
+def gaussian_kl(mq, lq, mp, lp):
+    """KL(N(mq, e^lq) || N(mp, e^lp)) per element."""
+    return 0.5 * (lp - lq + (torch.exp(lq) + (mq - mp) ** 2) * torch.exp(-lp) - 1.0)
+
+
+class MotionDVAE(nn.Module):
+    """The Motion-DVAE network with its denoising networks (module docstring for the wiring)."""
+
+    def __init__(self, z_dim: int = 48, hidden: int = 1024, mlp_hidden: int = 1024, fps: float = FPS):
+        super().__init__()
+        self.z_dim, self.hidden, self.mlp_hidden, self.fps = int(z_dim), int(hidden), int(mlp_hidden), float(fps)
+        Z, H, M = self.z_dim, self.hidden, self.mlp_hidden
+        # generative model (prior + decoder share gen_rnn)
+        self.gen_rnn = nn.LSTM(Z + STATE_DIM, H, batch_first=True)
+        self.prior_mean = MLP([H, M, M, Z])
+        self.prior_logvar = MLP([H, M, M, Z])
+        self.decoder = MLP([H + Z, M, M, STATE_DIM])
+        _zero_last(self.decoder)  # the untrained decoder repeats x_0 (a residual starts at identity)
+        # log-variance of p(x_t | x_0, z_{1:t}) per state dimension (standardised units), learned
+        self.dec_logvar = nn.Parameter(torch.zeros(STATE_DIM))
+        # inference model (clean data) and the denoising networks
+        self.encoder = Encoder(Z, H, M)
+        self.denoise_encoder = Encoder(Z, H, M)
+        self.init_state = InitialStatePredictor(H, M)
+        self.noise = NoisePredictor(H, M)
+        # data statistics and the skeleton of the point losses (set by training, saved with the weights)
+        self.register_buffer("state_mean", torch.zeros(STATE_DIM))
+        self.register_buffer("state_std", torch.ones(STATE_DIM))
+        self.register_buffer("x0_mean", torch.zeros(STATE_DIM))
+        self.register_buffer("rest_joints", torch.zeros(NUM_JOINTS, 3))
+
+    @property
+    def config(self) -> dict:
+        return {"z_dim": self.z_dim, "hidden": self.hidden, "mlp_hidden": self.mlp_hidden, "fps": self.fps}
+
+    def parameter_counts(self) -> dict:
+        def n(*mods):
+            return sum(p.numel() for m in mods for p in m.parameters())
+
+        gen = n(self.gen_rnn, self.prior_mean, self.prior_logvar, self.decoder) + self.dec_logvar.numel()
+        return {"generative (prior + decoder)": gen, "encoder": n(self.encoder),
+                "dvae (generative + encoder)": gen + n(self.encoder), "denoise_encoder": n(self.denoise_encoder),
+                "init_state": n(self.init_state), "noise": n(self.noise), "total": n(self)}
+
+    # standardisation
+    def normalise(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.state_mean) / self.state_std
+
+    def unnormalise(self, xn: torch.Tensor) -> torch.Tensor:
+        return xn * self.state_std + self.state_mean
+
+    # generative model
+    def gen_features(self, x0n: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """h_{0..T-1} (B, T, H) for x^_0 (B, S) and z_{1..T-1} (B, T-1, Z): one LSTM call."""
+        zz = torch.cat([z[:, :1] * 0.0 if z.shape[1] else x0n.new_zeros(x0n.shape[0], 1, self.z_dim), z], 1)
+        u = torch.cat([zz, x0n[:, None].expand(-1, zz.shape[1], -1)], -1)
+        # explicit zero initial state built from the input, so that an ONNX export keeps the batch dynamic
+        h0 = (x0n[:, :1] * 0.0).expand(-1, self.hidden)[None].contiguous()
+        h, _ = self.gen_rnn(u, (h0, h0))
+        return h
+
+    def prior_params(self, h_prev: torch.Tensor):
+        return self.prior_mean(h_prev), self.prior_logvar(h_prev).clamp(*LOGVAR_RANGE)
+
+    def decode_normalised(self, x0n: torch.Tensor, z: torch.Tensor, h: torch.Tensor | None = None) -> torch.Tensor:
+        """Standardised states of frames 0..T-1 (B, T, S); frame 0 is x^_0."""
+        if h is None:
+            h = self.gen_features(x0n, z)
+        # the decoder head gives the per-frame increment of the standardised state; the mean of
+        # x_t is x^_0 plus their running sum (a deterministic function of x_0, z_{1:t}) [inferred]
+        inc = self.decoder(torch.cat([h[:, 1:], z], -1))
+        return torch.cat([x0n[:, None], x0n[:, None] + torch.cumsum(inc, dim=1)], 1)
+
+    def generate(self, x0: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Raw states (B, T, 138) of the motion from x0 (B, 138) raw and z (B, T-1, Z)."""
+        return self.unnormalise(self.decode_normalised(self.normalise(x0), z))
+
+    def prior_nll(self, x0: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """(B,) -1/(T-1) sum_t log N(z_t; prior(h_{t-1})), nats per frame (sum over dims)."""
+        if z.shape[1] == 0:
+            return x0.new_zeros(x0.shape[0])
+        x0n = self.normalise(x0)
+        h = self.gen_features(x0n, z)
+        mu, lv = self.prior_params(h[:, :-1])
+        nll = 0.5 * (lv + (z - mu) ** 2 * torch.exp(-lv) + math.log(2 * math.pi))
+        return nll.sum(-1).mean(-1)
+
+    def sample_prior(self, x0: torch.Tensor, steps: int, generator: torch.Generator | None = None,
+                     temperature: float = 1.0) -> torch.Tensor:
+        """Ancestral sample z_{1..steps} (B, steps, Z) of p(z_t | x_0, z_{1:t-1})."""
+        x0n = self.normalise(x0)
+        B = x0.shape[0]
+        z_prev = x0.new_zeros(B, 1, self.z_dim)
+        h, state = self.gen_rnn(torch.cat([z_prev, x0n[:, None]], -1))
+        zs = []
+        for _ in range(steps):
+            mu, lv = self.prior_params(h[:, -1])
+            z = mu + temperature * torch.exp(0.5 * lv) * _randn(mu, generator)
+            zs.append(z)
+            h, state = self.gen_rnn(torch.cat([z, x0n], -1)[:, None], state)
+        return torch.stack(zs, 1) if zs else x0.new_zeros(B, 0, self.z_dim)
+
+    # losses
+    def dvae_loss(self, states: torch.Tensor, points: torch.Tensor, beta: float) -> dict:
+        """Clean-data loss for canonical states (B, T, 138) and their body points (B, T, P, 3)."""
+        xn = self.normalise(states)
+        x0n = xn[:, 0]
+        z, qm, qlv = self.encoder(xn, x0n, sample=True)
+        h = self.gen_features(x0n, z)
+        pm, plv = self.prior_params(h[:, :-1])
+        rec_n = self.decode_normalised(x0n, z, h)
+        lv = self.dec_logvar.clamp(*DEC_LOGVAR_RANGE)
+        sq = (rec_n[:, 1:] - xn[:, 1:]).square()
+        rec = 0.5 * (sq * torch.exp(-lv) + lv).sum(-1).mean()
+        kl = gaussian_kl(qm, qlv, pm, plv).sum(-1).mean()
+        rot, trans = state_to_motion(self.unnormalise(rec_n[:, 1:]))
+        pts = (body_points(rot, trans, self.rest_joints) - points[:, 1:]).square().sum(-1)
+        point_sq = pts.sum(-1).mean()
+        loss = rec + beta * kl + POINT_WEIGHT * point_sq
+        return {"loss": loss, "rec": rec, "kl": kl, "state_mse": sq.mean().detach(), "point_sq_m2": point_sq,
+                "point_rmse_m": (pts.mean()).sqrt().detach(), "beta": torch.tensor(float(beta))}
+
+    def denoise_forward(self, noisy_states: torch.Tensor, sample: bool, generator=None, nets=None):
+        """Denoising inference on noisy canonical states (B, T, 138).
+
+        nets: (encoder, init_state, noise) to use (default: this model's denoising networks).
+        Returns dict with x0 (raw, B x 138), z, q_mean, q_logvar, x0 mean/logvar (standardised),
+        noise alpha/beta (B, T), decoded standardised states (B, T, S) and features h.
+        """
+        enc, init, noise = nets if nets is not None else (self.denoise_encoder, self.init_state, self.noise)
+        yn = self.normalise(noisy_states)
+        m0, lv0 = init(yn)
+        if sample:
+            x0n = m0 + torch.exp(0.5 * lv0) * _randn(m0, generator)
+        else:
+            x0n = m0
+        b = enc.backward_features(yn)
+        z, qm, qlv = enc(yn, x0n, sample=sample, generator=generator, b=b)
+        alpha, beta_ = noise(b)
+        h = self.gen_features(x0n, z)
+        xn = self.decode_normalised(x0n, z, h)
+        return {"x0n": x0n, "x0": self.unnormalise(x0n), "z": z, "q_mean": qm, "q_logvar": qlv, "alpha": alpha,
+                "beta": beta_, "h": h, "xn": xn}
+
+    def denoise_loss(self, noisy_states: torch.Tensor, observed_points: torch.Tensor, beta: float,
+                     nets=None, generator=None) -> dict:
+        """Unsupervised denoising objective (module docstring) per frame, mean over the batch."""
+        out = self.denoise_forward(noisy_states, sample=True, generator=generator, nets=nets)
+        pm, plv = self.prior_params(out["h"][:, :-1])
+        kl_z = gaussian_kl(out["q_mean"], out["q_logvar"], pm, plv).sum(-1)  # (B, T-1)
+        rot, trans = state_to_motion(self.unnormalise(out["xn"]))
+        sq = (body_points(rot, trans, self.rest_joints) - observed_points).square().sum((-1, -2))  # (B, T)
+        P = observed_points.shape[-2] * 3
+        alpha, b = out["alpha"], out["beta"]
+        e_prec = alpha / b
+        e_logv = torch.log(b) - torch.digamma(alpha)
+        data = 0.5 * e_prec * sq + 0.5 * P * e_logv
+        a0 = torch.full_like(alpha, NOISE_PRIOR_SHAPE)
+        b0 = a0 * NOISE_PRIOR_SCALE_M ** 2
+        # KL(InvGamma(a, b) || InvGamma(a0, b0)) = KL(Gamma(a, rate b) || Gamma(a0, rate b0)) (precisions)
+        kl_v = torch.distributions.kl_divergence(torch.distributions.Gamma(alpha, b), torch.distributions.Gamma(a0, b0))
+        T = noisy_states.shape[1]
+        data_t, kl_v_t = data.sum(1).mean() / T, kl_v.sum(1).mean() / T
+        kl_z_t = kl_z.sum(1).mean() / T
+        loss = data_t + beta * kl_z_t + kl_v_t
+        return {"loss": loss, "data": data_t, "kl_z": kl_z_t, "kl_noise": kl_v_t,
+                "point_rmse_m": (sq.mean() / P).sqrt().detach(), "noise_std_m": (b / (alpha - 1).clamp_min(1e-3)).sqrt().mean().detach(),
+                "beta": torch.tensor(float(beta))}
