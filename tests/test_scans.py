@@ -109,3 +109,17 @@ def test_errors_name_the_file_and_the_fix(tmp_path):
     (folder / "frame_1.ply").write_text("")
     with pytest.raises(ValueError, match="frame_1.ply: "):
         load_scan_folder(folder)
+
+
+def test_capture_content_hash_follows_bytes_units_and_up(tmp_path):
+    """Resume keys a capture's units on its content: the frames' bytes, the up axis and the units."""
+    from benchmark.loaders.scans import ScanSequence
+    from benchmark.protocols.table_run import motion_sha256
+
+    write_mixed_folder(tmp_path)
+    base = motion_sha256(ScanSequence(tmp_path, check=False))
+    assert base == motion_sha256(ScanSequence(tmp_path, check=False))
+    assert base != motion_sha256(ScanSequence(tmp_path, units="mm", check=False))
+    assert base != motion_sha256(ScanSequence(tmp_path, up="z", check=False))
+    np.savez(tmp_path / "frame_10.npz", points=np.ones((5, 3)))
+    assert base != motion_sha256(ScanSequence(tmp_path, check=False))

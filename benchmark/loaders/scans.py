@@ -307,6 +307,20 @@ class ScanSequence:
         if check:
             self.read_frames([0])
 
+    def content_sha256(self) -> str:
+        """Content hash of the capture as a unit reads it: the up axis and units, the timestamps
+        and every frame file's bytes (resume reuses a stored unit only for the same capture)."""
+        import hashlib
+
+        h = hashlib.sha256(f"scans;up:{self.up};units:{self.units};".encode())
+        ts = np.ascontiguousarray(np.asarray(self.timestamps, dtype=np.float64))
+        h.update(ts.tobytes())
+        for frame in self.frames:
+            path = Path(frame)
+            h.update(f"{path.name}:".encode())
+            h.update(path.read_bytes())
+        return h.hexdigest()
+
     @property
     def capture_fps(self) -> float:
         return float(1.0 / np.median(np.diff(self.timestamps)))

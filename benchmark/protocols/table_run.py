@@ -106,6 +106,8 @@ def motion_sha256(motion) -> str:
 
     import numpy as np
 
+    if hasattr(motion, "content_sha256"):  # a capture (benchmark.loaders.scans.ScanSequence)
+        return motion.content_sha256()
     h = hashlib.sha256()
     for name in ("poses", "trans", "timestamps", "shape"):
         value = getattr(motion, name, None)
