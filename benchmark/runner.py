@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from benchmark.results import WorkUnit, atomic_write_json, plan_units, unit_path, validate_unit_result
+from benchmark.unit_arrays import ARRAYS_KEY, arrays_path, write_arrays
 
 __all__ = ["BACKENDS", "RESUME_POLICIES", "RunReport", "WorkUnit", "plan_units", "progress_enabled", "run_units"]
 
@@ -193,9 +194,12 @@ def run_units(
         try:
             if error is None:
                 try:
-                    validate_unit_result(result, unit, source=f"executor result for {unit.unit_id}")
-                    record = dict(result)
+                    record = dict(result) if isinstance(result, dict) else result
+                    arrays = record.pop(ARRAYS_KEY, None) if isinstance(record, dict) else None
+                    validate_unit_result(record, unit, source=f"executor result for {unit.unit_id}")
                     record["spec"] = unit.spec
+                    if arrays:  # the fitted motion, for the report: written before the JSON that marks the unit done
+                        write_arrays(arrays_path(out_dir, unit.unit_id), arrays)
                     atomic_write_json(unit_path(out_dir, unit.unit_id), record)
                 except (ValueError, TypeError, OSError) as exc:
                     error = exc
