@@ -115,6 +115,15 @@ def test_root_errors_flag_a_turned_fit():
     assert facing[0] == pytest.approx(0.0, abs=1e-4) and root[0] == pytest.approx(math.degrees(0.3), abs=1e-4)
 
 
+def test_quat_to_rotmat_matches_roma():
+    import roma
+
+    from benchmark.report.animate import quat_to_rotmat
+
+    q = roma.random_unitquat(50, generator=torch.Generator().manual_seed(0)).double()
+    assert np.allclose(quat_to_rotmat(q.numpy()), roma.unitquat_to_rotmat(q).numpy(), atol=1e-12)
+
+
 def test_splat_nearest_point_wins_like_a_naive_zbuffer():
     from benchmark.report.render import Camera, Canvas
 

@@ -47,6 +47,24 @@ def check_arrays(arrays: dict, unit: dict, source: str) -> str | None:
     return None
 
 
+def quat_to_rotmat(quat: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) float64 rotation matrices of (..., 4) unit quaternions (x, y, z, w)."""
+    q = np.asarray(quat, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def root_diagnostics(arrays: dict, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per output frame of sequence ``b``: root-orientation and facing errors (degrees), from the
+    stored root rotations alone (no skinning)."""
+    return root_errors(quat_to_rotmat(arrays["fit_quat"][b, :, 0]), quat_to_rotmat(arrays["gt_quat"][b, :, 0]))
+
+
 def _skin(body, quat, trans, shape):
     import roma
     import torch

@@ -37,7 +37,7 @@ class SequenceDiag:
     facing_err_mean: float  # degrees
     root_err_mean: float  # degrees
     backwards_fraction: float  # share of output frames facing > 90° away from the ground truth
-    v2v_mm: float  # mean per-vertex distance to the ground-truth mesh
+    v2v_mm: float | None = None  # mean per-vertex distance to the ground-truth mesh (animated sequences only)
 
     @property
     def backwards(self) -> bool:
@@ -88,9 +88,13 @@ def build_report(run_dir, out_dir=None, sequences: int = DEFAULT_SEQUENCES, anim
             log.warning("report: this Pillow has no WebP support; writing GIF animations")
             animation_format = "gif"
     img_dir = out / "img"
+    marker = img_dir / ".benchmark-report"
     if img_dir.exists():
-        shutil.rmtree(img_dir)  # only what this report writes lives there
+        if not marker.exists():
+            raise FileExistsError(f"report: {img_dir} exists and was not written by the report; choose another --out")
+        shutil.rmtree(img_dir)  # a previous report's images: replaced
     img_dir.mkdir(parents=True)
+    marker.write_text("written by python -m benchmark report; replaced on the next report into this folder\n")
 
     from benchmark.report import plots
 
@@ -110,7 +114,7 @@ def build_report(run_dir, out_dir=None, sequences: int = DEFAULT_SEQUENCES, anim
 def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, fmt: str, body_spec, body_cache,
                    plots, animation_fps: float) -> str:
     name = table["table"]
-    stem = _safe(name)
+    stem = _safe(Path(table.get("_file", name)).stem)
     priors = [r["prior"] for r in table["rows"]]
     colours = plots.prior_colours(priors)
     metric_names = [m["name"] for m in table["metrics"]]
@@ -126,13 +130,14 @@ def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, f
             cell = {k: c[k] for k in grid_keys}
             units = run.units_of(name, row["prior"], cell)
             cr = CellReport(table=name, prior=row["prior"], cell=cell, units=units,
-                            anchor=f"seq-{_safe(name)}-{_safe(row['prior'])}-{i}")
+                            anchor=f"seq-{stem}-{_safe(row['prior'])}-{i}")
             cr.seq_rows = sequence_rows(units, metric_names)
             _diagnose_and_animate(run, cr, img_dir, sequences if not c.get("na_reason") else 0, fmt, body_spec,
                                   body_cache, gt_cache, animation_fps)
             reports[(row["prior"], i)] = cr
 
-    parts = [f'<section id="{_esc(stem)}"><h2>{_esc(name)}: {_esc(table.get("title", ""))}</h2>']
+    parts = [f'<section id="{_esc(stem)}"><h2>{_esc(name)}: {_esc(table.get("title", ""))}</h2>'
+             f'<p class="note">{_esc(table.get("_file", ""))}, profile {_esc(table.get("profile"))}</p>']
     parts.append(_about(table))
     for m in metric_names:
         parts.append(_metric_table(table, m, reports, grid_keys))
@@ -161,7 +166,7 @@ def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, f
 
 def _diagnose_and_animate(run, cr: CellReport, img_dir: Path, sequences: int, fmt: str, body_spec, body_cache,
                           gt_cache, animation_fps: float) -> None:
-    from benchmark.report.animate import animate, check_arrays, sequence_motion
+    from benchmark.report.animate import animate, check_arrays, root_diagnostics, sequence_motion
     from benchmark.unit_arrays import read_arrays
 
     if not cr.units:
@@ -187,13 +192,15 @@ def _diagnose_and_animate(run, cr: CellReport, img_dir: Path, sequences: int, fm
         if why:
             cr.no_animation = f"animation unavailable: {why}"
             continue
-        body = _body(body_spec or run_body(run, cr.table), body_cache)
         for b in range(len(arrays["sequence_ids"])):
-            motion = sequence_motion(arrays, b, body, gt_cache)
-            cr.diag[motion.sequence_id] = SequenceDiag(
-                facing_err_mean=float(motion.facing_err_deg.mean()), root_err_mean=float(motion.root_err_deg.mean()),
-                backwards_fraction=float(motion.backwards.mean()), v2v_mm=float(motion.v2v_mm.mean()))
+            root_err, facing_err = root_diagnostics(arrays, b)
+            sid = str(arrays["sequence_ids"][b])
+            cr.diag[sid] = SequenceDiag(facing_err_mean=float(facing_err.mean()), root_err_mean=float(root_err.mean()),
+                                        backwards_fraction=float((facing_err > 90.0).mean()))
             if done < sequences:
+                body = _body(body_spec or run_body(run, cr.table), body_cache)
+                motion = sequence_motion(arrays, b, body, gt_cache)  # skinned: only the animated sequences
+                cr.diag[sid].v2v_mm = float(motion.v2v_mm.mean())
                 cr.facing_curves.append((motion.sequence_id, motion.t, motion.facing_err_deg))
                 name = f"anim__{_safe(u['unit_id'])}__{b}.{fmt}"
                 animate(motion, body, img_dir / name, title=f"{cr.prior} {_cell_text(cr.cell)}", size=ANIMATION_SIZE,
@@ -364,7 +371,7 @@ def _animation_section(table, reports, img_dir, plots, priors, cells, grid_keys)
                 curves_by_cell.append((label, cr.facing_curves))
         parts.append("</div>")
         if curves_by_cell:
-            path = img_dir / f"{_safe(table['table'])}__{_safe(p)}__facing.png"
+            path = img_dir / f"{_safe(Path(table.get('_file', table['table'])).stem)}__{_safe(p)}__facing.png"
             _facing_grid(curves_by_cell, path, p)
             parts.append(_figure(path, f"{p}: facing-direction error per output frame of the animated sequences "
                                        "(above the dashed 90° line: backwards)", img_dir))
@@ -372,32 +379,11 @@ def _animation_section(table, reports, img_dir, plots, priors, cells, grid_keys)
 
 
 def _facing_grid(curves_by_cell, path, prior):
-    from benchmark.report.plots import _plt
+    """One plot per prior: facing error per frame of every animated sequence, one line per cell."""
+    from benchmark.report.plots import facing_plot
 
-    plt = _plt()
-    n = len(curves_by_cell)
-    cols = min(n, 3)
-    rows = (n + cols - 1) // cols
-    fig, axs = plt.subplots(rows, cols, figsize=(3.3 * cols, 2.0 * rows), squeeze=False, sharey=True)
-    for ax, (label, curves) in zip(axs.ravel(), curves_by_cell):
-        for sid, t, err in curves:
-            ax.plot(t, err, lw=1.2, label=sid)
-        ax.axhline(90.0, color="#d7191c", ls="--", lw=1)
-        ax.set_ylim(0, 180)
-        ax.set_yticks([0, 90, 180])
-        ax.set_title(label, fontsize=8)
-        ax.tick_params(labelsize=7)
-        ax.grid(alpha=0.3)
-    for ax in axs.ravel()[n:]:
-        ax.axis("off")
-    for ax in axs[:, 0]:
-        ax.set_ylabel("facing err (°)", fontsize=7)
-    for ax in axs[-1]:
-        ax.set_xlabel("time (s)", fontsize=7)
-    fig.suptitle(prior, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    curves = [(f"{label}: {sid}" if len(cc) > 1 else label, t, err) for label, cc in curves_by_cell for sid, t, err in cc]
+    facing_plot(curves, path, prior)
 
 
 def _breakdown_section(table, reports, metric_names, grid_keys) -> str:
@@ -415,7 +401,7 @@ def _breakdown_section(table, reports, metric_names, grid_keys) -> str:
             continue
         extra_keys = sorted({k for r in cr.seq_rows for k in r["extra"]})
         head = ("<th>sequence</th>" + "".join(f"<th>{_esc(metric_label(m))}</th>" for m in metric_names)
-                + "<th>facing err (°)</th><th>backwards frames</th><th>V2V (mm)</th>"
+                + "<th>facing err (°)</th><th>backwards frames</th><th>V2V (mm, animated only)</th>"
                 + "".join(f"<th>{_esc(k)}</th>" for k in extra_keys) + "<th>unit</th>")
         rows = []
         for r in cr.seq_rows:
@@ -424,7 +410,7 @@ def _breakdown_section(table, reports, metric_names, grid_keys) -> str:
             if d:
                 cls = ' class="bad"' if d.backwards else ""
                 tds += (f"<td{cls}>{d.facing_err_mean:.0f}</td><td{cls}>{d.backwards_fraction:.0%}</td>"
-                        f"<td>{d.v2v_mm:.0f}</td>")
+                        f"<td>{'–' if d.v2v_mm is None else f'{d.v2v_mm:.0f}'}</td>")
             else:
                 tds += '<td class="muted" colspan="3">no stored fit</td>'
             tds += "".join(f"<td>{_esc(_short(r['extra'].get(k)))}</td>" for k in extra_keys)
@@ -464,7 +450,8 @@ img.legend{display:block;margin:.3em 0}
 
 
 def _page(run: RunFolder, sections: list, out: Path, seconds: float) -> str:
-    nav = " ".join(f'<a href="#{_esc(_safe(t["table"]))}">{_esc(t["table"])}</a>' for t in run.tables)
+    nav = " ".join(f'<a href="#{_esc(_safe(Path(t.get("_file", t["table"])).stem))}">{_esc(Path(t.get("_file", t["table"])).stem)}</a>'
+                   for t in run.tables)
     skipped = ""
     if run.skipped:
         skipped = ("<p class='note'>Skipped files: " + "; ".join(f"{_esc(p.name)} ({_esc(w)})" for p, w in run.skipped)

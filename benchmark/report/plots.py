@@ -137,6 +137,10 @@ def sweep_plots(table: dict, metric: str, out_dir: Path, colours: dict, stem: st
             ax.set_xlabel(_axis_label(x_axis))
             ax.set_title(", ".join(f"{_axis_label(a)} = {v}" for a, v in zip(others, pk)) or table["table"], fontsize=10)
             ax.grid(alpha=0.3)
+        lows = [v for ax in axs[0] for line in ax.get_lines() for v in np.asarray(line.get_ydata(), float) if v > 0]
+        if lows and max(lows) / min(lows) > 20:  # a few failed fits would flatten every other line
+            for ax in axs[0]:
+                ax.set_yscale("log")
         axs[0][0].set_ylabel(metric_label(metric))
         handles, labels = axs[0][-1].get_legend_handles_labels()
         if handles:
@@ -211,7 +215,7 @@ def spread_plot(table: dict, metric: str, seq_values: dict, out_dir: Path, colou
 def facing_plot(curves: list, path: Path, title: str):
     """``curves``: [(label, t (T,), facing error (T,) degrees)], with the 90° line dashed."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(4.2, 2.2))
+    fig, ax = plt.subplots(figsize=(5.2, 2.4))
     for label, t, err in curves:
         ax.plot(t, err, lw=1.2, label=label)
     ax.axhline(90.0, color="#d7191c", ls="--", lw=1)
@@ -222,9 +226,8 @@ def facing_plot(curves: list, path: Path, title: str):
     ax.set_title(title, fontsize=9)
     ax.tick_params(labelsize=7)
     if len(curves) > 1:
-        ax.legend(fontsize=6, frameon=False)
+        ax.legend(fontsize=6, frameon=False, loc="center left", bbox_to_anchor=(1.0, 0.5))
     ax.grid(alpha=0.3)
-    fig.tight_layout()
     return _save(fig, path)
 
 

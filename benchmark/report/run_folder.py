@@ -52,6 +52,7 @@ def load_run(path) -> RunFolder:
             skipped.append((f, f"unreadable JSON ({exc})"))
             continue
         if _is_table(obj):
+            obj["_file"] = f.name  # several tables (or profiles of one) may share a folder
             tables.append(obj)
     if not tables:
         raise FileNotFoundError(
@@ -72,7 +73,7 @@ def load_run(path) -> RunFolder:
             lst.sort(key=lambda u: u["unit_id"])
     for f, why in skipped:
         log.warning("report: skipping %s: %s", f, why)
-    return RunFolder(root=root, tables=sorted(tables, key=lambda t: t["table"]), units=units, skipped=skipped)
+    return RunFolder(root=root, tables=sorted(tables, key=lambda t: (t["table"], t["_file"])), units=units, skipped=skipped)
 
 
 def sequence_rows(units: list, metrics: list) -> list[dict]:
