@@ -90,7 +90,9 @@ def build_report(run_dir, out_dir=None, sequences: int = DEFAULT_SEQUENCES, anim
     img_dir = out / "img"
     marker = img_dir / ".benchmark-report"
     if img_dir.exists():
-        if not marker.exists():
+        index = out / "index.html"
+        ours = marker.exists() or (index.is_file() and "python -m benchmark report" in index.read_text(errors="replace"))
+        if not ours:
             raise FileExistsError(f"report: {img_dir} exists and was not written by the report; choose another --out")
         shutil.rmtree(img_dir)  # a previous report's images: replaced
     img_dir.mkdir(parents=True)
