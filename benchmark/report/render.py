@@ -5,8 +5,9 @@ mean facing direction, so a fit that looks away shows its back) and *side* (90 d
 left of it). The view follows the ground truth's root horizontally, so a drifting fit drifts out
 of the frame. Drawn in each view:
 
-- the fitted mesh, its vertices splatted (2 x 2 pixels, nearest wins) and shaded by their normals,
-  coloured by per-vertex error (distance to the same vertex of the ground-truth mesh, mm);
+- the fitted mesh, its face centroids splatted (2 x 2 pixels, nearest wins, back faces culled) and
+  shaded by their normals, coloured by per-vertex error (distance to the same vertex of the
+  ground-truth mesh, mm; a face takes the mean of its three vertices);
 - the ground truth as a translucent skeleton (22 joints, 21 bones);
 - the observed points of an observed frame, on the rendered frame nearest to its timestamp;
 - a header with the time, the root-orientation error and, on frames where the fit faces more than
@@ -36,21 +37,23 @@ def error_lut(n: int = 256) -> np.ndarray:
     return (colormaps["turbo"](np.linspace(0.0, 1.0, n))[:, :3] * 255).astype(np.uint8)
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(T, V, 3) unit area-weighted vertex normals of (T, V, 3) vertices, pointing outwards (the
-    side away from the mesh's centroid, whatever the winding of ``faces``)."""
+def face_samples(vertices: np.ndarray, faces: np.ndarray, values: np.ndarray):
+    """Per face of (T, V, 3) vertices: centroids (T, F, 3), unit normals pointing outwards (the
+    side away from the mesh's centroid, whatever the winding) and the mean of per-vertex ``values``
+    (T, V). Face centroids are the splatted samples: denser than the vertices (two per quad), they
+    leave no holes between the vertex rings of the limbs at the report's resolution."""
     import torch
 
     v = torch.from_numpy(np.ascontiguousarray(vertices, dtype=np.float32))
     f = torch.from_numpy(np.asarray(faces, dtype=np.int64))
     a, b, c = v[:, f[:, 0]], v[:, f[:, 1]], v[:, f[:, 2]]
-    fn = torch.linalg.cross(b - a, c - a, dim=-1)
-    vn = torch.zeros_like(v)
-    for k in range(3):
-        vn.index_add_(1, f[:, k], fn)
-    vn = torch.nn.functional.normalize(vn, dim=-1)
-    outward = ((v[0] - v[0].mean(0)) * vn[0]).sum(-1).mean()
-    return (vn if outward >= 0 else -vn).numpy()
+    centroids = (a + b + c) / 3
+    normals = torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a, dim=-1), dim=-1)
+    if ((centroids[0] - v[0].mean(0)) * normals[0]).sum(-1).mean() < 0:
+        normals = -normals
+    val = torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32))
+    fval = (val[:, f[:, 0]] + val[:, f[:, 1]] + val[:, f[:, 2]]) / 3
+    return centroids.numpy(), normals.numpy(), fval.numpy()
 
 
 @dataclass
@@ -94,8 +97,8 @@ class Canvas:
         return x, y, p @ cam.view
 
     def splat_mesh(self, view: int, cam: Camera, vertices, normals, colours, centre):
-        """Z-buffered 2 x 2 splats of the camera-facing ones of (V, 3) vertices (outward (V, 3)
-        normals) with (V, 3) uint8 colours, Lambert-shaded."""
+        """Z-buffered 2 x 2 splats of the camera-facing ones of (N, 3) surface samples (outward
+        (N, 3) normals) with (N, 3) uint8 colours, Lambert-shaded."""
         facing = normals @ cam.view
         keep = facing < 0.1  # a little slack keeps the silhouette closed
         x, y, z = self.project(cam, vertices[keep], centre)
@@ -186,8 +189,8 @@ def render_frames(fit_vertices, gt_vertices, faces, gt_joints, parents, root_err
     T = len(t)
     lut = error_lut()
     err_mm = np.linalg.norm(fit_vertices - gt_vertices, axis=-1) * 1000.0  # (T, V)
-    cidx = np.clip(err_mm / ERROR_MAX_MM * (len(lut) - 1), 0, len(lut) - 1).astype(np.int64)
-    normals = vertex_normals(fit_vertices, faces)
+    samples, normals, face_err = face_samples(fit_vertices, faces, err_mm)
+    cidx = np.clip(face_err / ERROR_MAX_MM * (len(lut) - 1), 0, len(lut) - 1).astype(np.int64)
     gt_root = gt_joints[:, 0]
     facing = heading_mean(gt_vertices, gt_joints)
     cams = cameras(facing)
@@ -210,7 +213,7 @@ def render_frames(fit_vertices, gt_vertices, faces, gt_joints, parents, root_err
         centre = np.array([gt_root[i, 0], mid_y, gt_root[i, 2]])
         for v, cam in enumerate(cams):
             canvas.floor(v, cam, centre, floor_y)
-            canvas.splat_mesh(v, cam, fit_vertices[i], normals[i], lut[cidx[i]], centre)
+            canvas.splat_mesh(v, cam, samples[i], normals[i], lut[cidx[i]], centre)
             canvas.skeleton(v, cam, gt_joints[i], parents, centre)
             for k in np.flatnonzero(shown == i):
                 pts = obs_points[k, : int(obs_lengths[k])].astype(np.float64)
