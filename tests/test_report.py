@@ -221,6 +221,29 @@ def test_report_of_a_run_without_stored_fits(run_dir, tmp_path):
     assert text.count("animation unavailable") == 2 and "no stored fit" in text
 
 
+def test_a_failing_animation_is_said_on_the_page(run_dir, tmp_path):
+    from benchmark.report import build_report
+
+    index = build_report(run_dir, tmp_path / "r", sequences=1, body_spec="no-such-body")
+    text = index.read_text(encoding="utf-8")
+    assert text.count("failed: FileNotFoundError") == 2 and "no-such-body" in text and "anim__" not in text
+    _check_page(index)
+
+
+@pytest.mark.slow
+def test_report_with_worker_processes(run_dir, tmp_path):
+    from PIL import Image
+
+    from benchmark.report import build_report
+
+    index = build_report(run_dir, tmp_path / "r", sequences=1, workers=2)
+    anims = [s for s in _check_page(index).srcs if "anim__" in s]
+    assert len(anims) == 2
+    for src in anims:
+        with Image.open(index.parent / src) as im:
+            assert im.n_frames == 30
+
+
 def test_cli_report_and_its_errors(run_dir, tmp_path, capsys):
     from benchmark.cli import main
 

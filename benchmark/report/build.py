@@ -67,11 +67,11 @@ def _esc(x) -> str:
 
 
 def build_report(run_dir, out_dir=None, sequences: int = DEFAULT_SEQUENCES, animation_format: str = "webp",
-                 body_spec: str | None = None, animation_fps: float = ANIMATION_FPS) -> Path:
+                 body_spec: str | None = None, animation_fps: float = ANIMATION_FPS, workers: int = 1) -> Path:
     """Write the report of ``run_dir`` into ``out_dir`` (default ``<run_dir>/report``); returns the
     path of ``index.html``. ``sequences``: how many sequences to animate per prior x cell (0: none);
     ``animation_fps``: frame rate of the animations (a divisor of the output rate; 30 shows every
-    output frame, at about twice the file size)."""
+    output frame, at about twice the file size); ``workers``: processes rendering animations."""
     t_start = time.perf_counter()
     run = load_run(run_dir)
     out = Path(out_dir) if out_dir is not None else run.root / "report"
@@ -100,11 +100,11 @@ def build_report(run_dir, out_dir=None, sequences: int = DEFAULT_SEQUENCES, anim
 
     from benchmark.report import plots
 
-    body_cache: dict = {}
-    sections = []
-    for table in run.tables:
-        sections.append(_table_section(run, table, img_dir, sequences, animation_format, body_spec, body_cache, plots,
-                                       animation_fps))
+    jobs: list = []
+    writers = [_table_section(run, table, img_dir, sequences, animation_format, body_spec, plots, animation_fps, jobs)
+               for table in run.tables]
+    run_animation_jobs(jobs, workers)
+    sections = [write() for write in writers]
     page = _page(run, sections, out, time.perf_counter() - t_start)
     index = out / "index.html"
     index.write_text(page, encoding="utf-8")
@@ -113,8 +113,10 @@ def build_report(run_dir, out_dir=None, sequences: int = DEFAULT_SEQUENCES, anim
 
 
 # ------------------------------------------------------------------------------------ per table
-def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, fmt: str, body_spec, body_cache,
-                   plots, animation_fps: float) -> str:
+def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, fmt: str, body_spec, plots,
+                   animation_fps: float, jobs: list):
+    """Read a table's units and queue its animations on ``jobs``; returns the function that writes
+    the table's HTML (and plots) once the jobs have run."""
     name = table["table"]
     stem = _safe(Path(table.get("_file", name)).stem)
     priors = [r["prior"] for r in table["rows"]]
@@ -126,7 +128,6 @@ def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, f
     grid_keys = list(table["grid"])
 
     reports: dict = {}
-    gt_cache: dict = {}
     for row in table["rows"]:
         for i, c in enumerate(row["cells"]):
             cell = {k: c[k] for k in grid_keys}
@@ -134,9 +135,14 @@ def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, f
             cr = CellReport(table=name, prior=row["prior"], cell=cell, units=units,
                             anchor=f"seq-{stem}-{_safe(row['prior'])}-{i}")
             cr.seq_rows = sequence_rows(units, metric_names)
-            _diagnose_and_animate(run, cr, img_dir, sequences if not c.get("na_reason") else 0, fmt, body_spec,
-                                  body_cache, gt_cache, animation_fps)
+            _diagnose(run, cr, img_dir, sequences if not c.get("na_reason") else 0, fmt, body_spec, animation_fps, jobs)
             reports[(row["prior"], i)] = cr
+    return lambda: _table_html(table, reports, img_dir, plots, stem, priors, colours, metric_names, head, cells,
+                               grid_keys)
+
+
+def _table_html(table, reports, img_dir, plots, stem, priors, colours, metric_names, head, cells, grid_keys) -> str:
+    name = table["table"]
 
     parts = [f'<section id="{_esc(stem)}"><h2>{_esc(name)}: {_esc(table.get("title", ""))}</h2>'
              f'<p class="note">{_esc(table.get("_file", ""))}, profile {_esc(table.get("profile"))}</p>']
@@ -166,9 +172,28 @@ def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, f
     return "\n".join(parts)
 
 
-def _diagnose_and_animate(run, cr: CellReport, img_dir: Path, sequences: int, fmt: str, body_spec, body_cache,
-                          gt_cache, animation_fps: float) -> None:
-    from benchmark.report.animate import animate, check_arrays, root_diagnostics, sequence_motion
+@dataclass
+class AnimationJob:
+    """One animation to render (picklable: it runs in a worker process when ``workers`` > 1)."""
+
+    npz: str
+    index: int
+    out: str
+    title: str
+    body_spec: str
+    size: tuple
+    fps: float
+    cell_report: object = field(default=None, repr=False)  # filled in this process only
+    sequence_id: str = ""
+
+    def payload(self) -> tuple:
+        return (self.npz, self.index, self.out, self.title, self.body_spec, self.size, self.fps)
+
+
+def _diagnose(run, cr: CellReport, img_dir: Path, sequences: int, fmt: str, body_spec, animation_fps: float,
+              jobs: list) -> None:
+    """Per-sequence diagnostics of a cell from its stored root rotations; queue its animations."""
+    from benchmark.report.animate import check_arrays, root_diagnostics
     from benchmark.unit_arrays import read_arrays
 
     if not cr.units:
@@ -200,15 +225,69 @@ def _diagnose_and_animate(run, cr: CellReport, img_dir: Path, sequences: int, fm
             cr.diag[sid] = SequenceDiag(facing_err_mean=float(facing_err.mean()), root_err_mean=float(root_err.mean()),
                                         backwards_fraction=float((facing_err > 90.0).mean()))
             if done < sequences:
-                body = _body(body_spec or run_body(run, cr.table), body_cache)
-                motion = sequence_motion(arrays, b, body, gt_cache)  # skinned: only the animated sequences
-                cr.diag[sid].v2v_mm = float(motion.v2v_mm.mean())
-                cr.facing_curves.append((motion.sequence_id, motion.t, motion.facing_err_deg))
                 name = f"anim__{_safe(u['unit_id'])}__{b}.{fmt}"
-                animate(motion, body, img_dir / name, title=f"{cr.prior} {_cell_text(cr.cell)}", size=ANIMATION_SIZE,
-                        fps=animation_fps)
-                cr.animations.append((motion.sequence_id, name))
+                cr.facing_curves.append((sid, arrays["t"][b].astype(np.float64), facing_err))
+                cr.animations.append((sid, name))
+                jobs.append(AnimationJob(str(path), b, str(img_dir / name), f"{cr.prior} {_cell_text(cr.cell)}",
+                                         body_spec or run_body(run, cr.table), ANIMATION_SIZE, animation_fps,
+                                         cell_report=cr, sequence_id=sid))
                 done += 1
+
+
+_WORKER_CACHE: dict = {}  # per process: body models and skinned ground truths
+
+
+def render_animation(npz: str, index: int, out: str, title: str, body_spec: str, size, fps: float) -> float:
+    """Skin, render and write one animation; returns the sequence's mean V2V error (mm)."""
+    from benchmark.report.animate import animate, sequence_motion
+    from benchmark.unit_arrays import read_arrays
+
+    body = _body(body_spec, _WORKER_CACHE.setdefault("bodies", {}))
+    motion = sequence_motion(read_arrays(npz), index, body, _WORKER_CACHE.setdefault("gt", {}))
+    animate(motion, body, out, title=title, size=tuple(size), fps=fps)
+    return float(motion.v2v_mm.mean())
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def run_animation_jobs(jobs: list, workers: int = 1) -> None:
+    """Render ``jobs`` here (``workers`` <= 1) or in that many spawned processes; a job that fails
+    leaves its cell without that animation and says why on the page."""
+    if not jobs:
+        return
+    results = {}
+    if workers <= 1 or len(jobs) == 1:
+        for k, job in enumerate(jobs):
+            try:
+                results[k] = (render_animation(*job.payload()), None)
+            except Exception as exc:  # one bad unit must not take the report down
+                results[k] = (None, f"{type(exc).__name__}: {exc}")
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_init_worker) as pool:
+            futures = {k: pool.submit(render_animation, *job.payload()) for k, job in enumerate(jobs)}
+            for k, fut in futures.items():
+                try:
+                    results[k] = (fut.result(), None)
+                except Exception as exc:
+                    results[k] = (None, f"{type(exc).__name__}: {exc}")
+    for k, job in enumerate(jobs):
+        v2v, error = results[k]
+        cr = job.cell_report
+        if error is None:
+            cr.diag[job.sequence_id].v2v_mm = v2v
+            continue
+        log.error("report: animation of %s (%s) failed: %s", job.sequence_id, Path(job.npz).name, error)
+        cr.animations = [(sid, name) for sid, name in cr.animations if name != Path(job.out).name]
+        cr.facing_curves = [c for c in cr.facing_curves if c[0] != job.sequence_id]
+        cr.no_animation = f"animation of {job.sequence_id} failed: {error}"
 
 
 def run_body(run: RunFolder, table_name: str) -> str:
