@@ -17,7 +17,7 @@ Contents written by :func:`fit_arrays` (B sequences, T output frames, n observed
   :data:`MAX_OBS_POINTS` of each observed frame's points (the observations are i.i.d. surface
   samples, so the first P are a uniform subsample); ``obs_lengths`` (B, n) int32 valid points.
 
-Compressed, 65-80 kB per table1 sequence (120 output frames); the report re-skins both bodies from these.
+Compressed, 60-80 kB per table1 sequence (120 output frames); the report re-skins both bodies from these.
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ ERROR_MAX_MM = 200.0  # colour scale of per-vertex error: 0 .. ERROR_MAX_MM (cla
 VIEW_HEIGHT_M = 2.3  # metres shown vertically
 BACKGROUND = (246, 246, 246)
 BACKWARDS_COLOUR = (215, 25, 28)
-WEBP_QUALITY = 50  # lossy WebP: a few hundred kB for 120 frames of 2 x 150 x 200 pixels
+WEBP_QUALITY = 50  # lossy WebP: 250-300 kB for 60 frames of 2 x 140 x 190 pixels
 WEBP_METHOD = 2  # encoder effort 0 (fast) .. 6 (small)
 
 
