@@ -147,6 +147,9 @@ def _table_html(table, reports, img_dir, plots, stem, priors, colours, metric_na
     parts = [f'<section id="{_esc(stem)}"><h2>{_esc(name)}: {_esc(table.get("title", ""))}</h2>'
              f'<p class="note">{_esc(table.get("_file", ""))}, profile {_esc(table.get("profile"))}</p>']
     parts.append(_about(table))
+    if not cells:
+        parts.append('<p class="note">This table has no rows (no prior was run).</p></section>')
+        return "\n".join(parts)
     for m in metric_names:
         parts.append(_metric_table(table, m, reports, grid_keys))
     parts.append(_diagnostics_table(table, reports, grid_keys))
