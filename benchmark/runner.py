@@ -47,6 +47,7 @@ from benchmark.results import (
     validate_unit_result,
     with_checksum,
 )
+from benchmark.unit_arrays import ARRAYS_KEY, arrays_path, write_arrays
 
 __all__ = ["BACKENDS", "RESUME_POLICIES", "RunReport", "WorkUnit", "plan_units", "progress_enabled", "run_units"]
 
@@ -232,10 +233,13 @@ def run_units(
         try:
             if error is None:
                 try:
-                    validate_unit_result(result, unit, source=f"executor result for {unit.unit_id}")
-                    record = dict(result)
+                    record = dict(result) if isinstance(result, dict) else result
+                    arrays = record.pop(ARRAYS_KEY, None) if isinstance(record, dict) else None
+                    validate_unit_result(record, unit, source=f"executor result for {unit.unit_id}")
                     record["spec"] = unit.spec
                     record = with_checksum(record)
+                    if arrays:  # the fitted motion, for the report: written before the JSON that marks the unit done
+                        write_arrays(arrays_path(out_dir, unit.unit_id), arrays)
                     atomic_write_json(unit_path(out_dir, unit.unit_id), record)
                 except (ValueError, TypeError, OSError) as exc:
                     error = exc
