@@ -191,7 +191,8 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
         "sequence_ids": list(unit.sequence_ids), "fingerprint": fp, "per_sequence": per_seq,
         "timings": {"fit_s": t1 - t0, "eval_s": t2 - t1}, "device": str(device), "na_reason": None,
         "fit_log": info["history"],
-        "arrays": unit_arrays(unit, data_source, data, batch, rot, trans, state.shape()),  # the runner stores it as .npz
+        # the runner stores it as .npz; captured scans have no ground-truth motion to store beside the fit
+        "arrays": None if no_joints else unit_arrays(unit, data_source, data, batch, rot, trans, state.shape()),
     }
 
 
