@@ -19,8 +19,7 @@ from pathlib import Path
 import pytest
 
 from benchmark import runner
-from benchmark.backends import (ProcessBackend, RayBackend, UnitError, WorkerDied, estimate_cost, longest_first,
-                                make_backend)
+from benchmark.backends import ProcessBackend, RayBackend, estimate_cost, longest_first, make_backend
 from benchmark.catalog import get_profile, load_table_spec
 from benchmark.protocols.table_run import run_table
 from fake_units import FakeExecutor, plan
