@@ -61,6 +61,25 @@ def _check_data_arg(data: str | None) -> None:
                                 "(or one file), or leave --data out for the synthetic test split")
 
 
+def _backend_options(args, device: str) -> dict:
+    """--jobs / --ray-address / --cpus-per-unit / --gpus-per-unit as options of the chosen backend."""
+    from benchmark.backends import default_jobs
+
+    if args.backend == "local":
+        for flag, value in (("--ray-address", args.ray_address), ("--cpus-per-unit", args.cpus_per_unit),
+                            ("--gpus-per-unit", args.gpus_per_unit)):
+            if value is not None:
+                raise ValueError(f"{flag} applies to --backend ray; the local backend takes --jobs")
+        jobs = default_jobs(device) if args.jobs is None else args.jobs
+        print(f"backend local, {jobs} job(s)" + (" (worker processes, one torch thread each)" if jobs > 1 else ""))
+        return {"jobs": jobs}
+    if args.jobs is not None:
+        raise ValueError("--jobs applies to --backend local; on Ray every unit is a task, sized by --cpus-per-unit "
+                         "and --gpus-per-unit")
+    print(f"backend ray, cluster {args.ray_address or '(a local runtime on this machine)'}")
+    return {"address": args.ray_address, "cpus_per_unit": args.cpus_per_unit, "gpus_per_unit": args.gpus_per_unit}
+
+
 def _cmd_run(args) -> int:
     from benchmark.catalog import get_profile, load_table_spec
     from benchmark.outdir import OutDirLock, check_out_dir
@@ -98,11 +117,12 @@ def _run_locked(args, spec, device, profile_name, profile, priors, weights, out)
 
     print(f"table {args.table} (protocol v{spec['protocol_version']}), profile {profile_name!r}: {profile['description']}")
     print(f"device {device}, seed {args.seed}, output {out}")
+    backend_options = _backend_options(args, device)
     body = get_body(args.body, device=device)
     result = run_table(
         spec, profile, priors=priors, body=body, device=device, seed=args.seed,
         out_dir=out, resume=args.resume, size=args.size, weights=weights,
-        data=scan_data_spec(args.data, args.up, args.units), backend=args.backend,
+        data=scan_data_spec(args.data, args.up, args.units), backend=args.backend, backend_options=backend_options,
     )
     print()
     print(result["markdown"])
@@ -267,7 +287,19 @@ def add_run_commands(sub) -> None:
                    "or scans=DIR, captured scans (one folder per sequence, table1 only)")
     p.add_argument("--up", choices=["y", "z"], default=None, help="--data scans=DIR: the captures' up axis (default y)")
     p.add_argument("--units", choices=["m", "cm", "mm"], default=None, help="--data scans=DIR: the captures' units (default m)")
-    p.add_argument("--backend", choices=["local"], default="local", help="execution backend (a Ray backend is planned)")
+    p.add_argument("--backend", choices=["local", "ray"], default="local",
+                   help="execution backend: local (this machine, --jobs processes) or ray (a Ray runtime or cluster); "
+                        "the backend never changes a number")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="local backend: units run in parallel in this many worker processes, one torch thread each "
+                        "(default: the CPU cores, 1 on CUDA; 1 runs them in this process)")
+    p.add_argument("--ray-address", default=None, metavar="auto|HOST:PORT",
+                   help="ray backend: join a running cluster ('auto': the one started on this machine by 'ray start'); "
+                        "default: start a local Ray runtime with this machine's cores")
+    p.add_argument("--cpus-per-unit", type=float, default=None,
+                   help="ray backend: CPUs each unit reserves, also its torch threads (default 1)")
+    p.add_argument("--gpus-per-unit", type=float, default=None,
+                   help="ray backend: GPUs each unit reserves, a fraction shares one (default 1 with --device cuda, else 0)")
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("describe", help="architecture summary and parameter counts of a prior (--size paper without --weights: "

@@ -20,11 +20,12 @@ its provenance).
 
 Nothing is ever deleted: a stale name that is taken gets a ``.1``, ``.2``... suffix.
 
-Backends: ``"local"`` runs the units one after another in this process. A backend is a callable
-``backend(units, execute, on_done)`` that calls ``on_done(unit, result, error)`` once per unit, in
-this process, as each unit finishes (``result`` the executor's dict, or ``error`` the exception it
-raised); see :data:`BACKENDS`. A Ray backend fits this seam: submit ``execute`` per unit as remote
-tasks and call ``on_done`` as they complete.
+Backends: ``"local"`` runs the units one after another in this process; ``"ray"`` runs each unit
+as a Ray task (:mod:`benchmark.backends`, which also has the multi-process local backend behind
+``--jobs N``). A backend is a callable ``backend(units, execute, on_done)`` that calls
+``on_done(unit, result, error)`` once per unit, in this process, as each unit finishes
+(``result`` the executor's dict, or ``error`` the exception it raised); see :data:`BACKENDS`.
+Results are stored and resumed the same way whatever the backend.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from benchmark.results import (
     validate_unit_result,
     with_checksum,
 )
+from benchmark.unit_arrays import ARRAYS_KEY, arrays_path, write_arrays
 
 __all__ = ["BACKENDS", "RESUME_POLICIES", "RunReport", "WorkUnit", "plan_units", "progress_enabled", "run_units"]
 
@@ -70,9 +72,17 @@ def _local_backend(units: Sequence[WorkUnit], execute: Executor, on_done: OnDone
             on_done(unit, result, None)
 
 
-# name -> backend callable. Add one with ``BACKENDS["ray"] = ray_backend`` (import Ray lazily
-# inside it, so that the harness does not need Ray installed).
-BACKENDS: dict[str, Backend] = {"local": _local_backend}
+def _ray_backend(units: Sequence[WorkUnit], execute: Executor, on_done: OnDone) -> None:
+    """Each unit a Ray task, default options (:class:`benchmark.backends.RayBackend`; Ray is
+    imported only here, so that the harness does not need it installed)."""
+    from benchmark.backends import RayBackend
+
+    RayBackend()(units, execute, on_done)
+
+
+# name -> backend callable with default options; ``benchmark.backends.make_backend`` builds one
+# with options (--jobs, --ray-address...), and ``run_units`` takes such a callable too.
+BACKENDS: dict[str, Backend] = {"local": _local_backend, "ray": _ray_backend}
 
 
 @dataclass
@@ -170,7 +180,7 @@ def run_units(
     execute: Executor,
     out_dir: str | os.PathLike,
     resume: str = "only-missing",
-    backend: str = "local",
+    backend: str | Backend = "local",
     progress: bool | None = None,
     announce: bool = True,
 ) -> RunReport:
@@ -179,7 +189,7 @@ def run_units(
     execute: ``execute(unit) -> unit-result dict`` (see :mod:`benchmark.results`); its result is
         validated against the unit (id, spec hash, sequences, finite sums) before it is stored.
     resume: ``"only-missing"`` or ``"never"`` (see the module docstring).
-    backend: a name in :data:`BACKENDS`.
+    backend: a name in :data:`BACKENDS`, or a backend callable (``benchmark.backends.make_backend``).
     progress: tqdm bar; ``None``: only when stdout is a terminal.
     announce: print the resume line (reused / to compute / moved aside) before running.
 
@@ -189,9 +199,9 @@ def run_units(
     """
     if resume not in RESUME_POLICIES:
         raise ValueError(f"unknown resume policy {resume!r}; choose one of {', '.join(RESUME_POLICIES)}")
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; available: {', '.join(sorted(BACKENDS))}"
-                         + (" (the Ray backend is not part of this build)" if backend == "ray" else ""))
+    if not callable(backend) and backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; available: {', '.join(sorted(BACKENDS))}")
+    run_backend = backend if callable(backend) else BACKENDS[backend]
     ids = [u.unit_id for u in units]
     if len(set(ids)) != len(ids):
         raise ValueError(f"run_units: unit ids repeat: {sorted({i for i in ids if ids.count(i) > 1})[:5]}")
@@ -232,10 +242,13 @@ def run_units(
         try:
             if error is None:
                 try:
-                    validate_unit_result(result, unit, source=f"executor result for {unit.unit_id}")
-                    record = dict(result)
+                    record = dict(result) if isinstance(result, dict) else result
+                    arrays = record.pop(ARRAYS_KEY, None) if isinstance(record, dict) else None
+                    validate_unit_result(record, unit, source=f"executor result for {unit.unit_id}")
                     record["spec"] = unit.spec
                     record = with_checksum(record)
+                    if arrays:  # the fitted motion, for the report: written before the JSON that marks the unit done
+                        write_arrays(arrays_path(out_dir, unit.unit_id), arrays)
                     atomic_write_json(unit_path(out_dir, unit.unit_id), record)
                 except (ValueError, TypeError, OSError) as exc:
                     error = exc
@@ -249,7 +262,7 @@ def run_units(
             bar.update(1)
 
     try:
-        BACKENDS[backend](todo, execute, on_done)
+        run_backend(todo, execute, on_done)
     finally:
         bar.close()
     report.results = {uid: done[uid] for uid in ids if uid in done}

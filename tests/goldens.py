@@ -24,6 +24,14 @@ UNITLESS = 0.05
 ACCELERATION = 0.5
 NOT_COMPARED = {"s_per_frame"}
 
+# Cells whose fit is chaotic, measured, with the wider tolerance that covers it: (table, prior,
+# metric) -> tolerance. The embedded Motion-DVAE's in-betweening fit over the 30- and 45-frame gaps
+# amplifies a 3e-8 m perturbation of Anny's body buffers (the size by which two builds of Anny's
+# cache differ) into MPJPE changes of up to 13.8 mm and PA-MPJPE changes of up to 7.9 mm (smoke
+# profile, two perturbation seeds and one fresh cache against the golden), while the 5- and 15-frame
+# gaps move by under 0.05 mm. A 3 mm tolerance there made CI pass or fail with the cache build.
+CHAOTIC = {("inbetween", "motion-dvae", "mpjpe_mm"): 20.0, ("inbetween", "motion-dvae", "pa_mpjpe_mm"): 12.0}
+
 
 def tolerances(spec: dict) -> dict:
     """metric name -> tolerance for the table ``spec``."""
@@ -39,6 +47,13 @@ def tolerances(spec: dict) -> dict:
         if tol[name] is None:
             tol[name] = UNITLESS if "accel" not in name and "accer" not in name else ACCELERATION
     return tol
+
+
+def _within_chaotic(table: str, row: dict) -> bool:
+    """A difference that only a known chaotic cell's wider tolerance (:data:`CHAOTIC`) accepts."""
+    tol = CHAOTIC.get((table, row.get("prior"), row.get("metric")))
+    diff = row.get("diff")
+    return tol is not None and row.get("status") == "out of tolerance" and diff is not None and abs(diff) <= tol
 
 
 def restrict_to_grid(table: dict, grid: dict) -> dict:
@@ -85,6 +100,6 @@ def check_or_update(table: dict, path: Path, spec: dict, update: bool, grid: dic
         golden = restrict_to_grid(golden, grid)
         assert all(row["cells"] for row in golden["rows"]), f"{path} lacks cells of {grid}: regenerate it with --update-goldens"
     ok, rows = compare_tables(golden, table, tolerances(spec))
-    problems = [r for r in rows if not r.get("ok", True)]
-    assert ok, f"{path.name}: {spec['name']} differs from the committed table beyond tolerance: {problems[:6]}"
+    problems = [r for r in rows if not r.get("ok", True) and not _within_chaotic(spec["name"], r)]
+    assert not problems, f"{path.name}: {spec['name']} differs from the committed table beyond tolerance: {problems[:6]}"
     warn_if_inputs_changed(golden, table, spec["name"])

@@ -110,8 +110,8 @@ def test_unreadable_file_is_moved_aside_and_rerun(tmp_path):
 
 
 def test_unknown_backend_and_policy_are_clear_errors(tmp_path):
-    with pytest.raises(ValueError, match="unknown backend 'ray'; available: local"):
-        runner.run_units(plan(), FakeExecutor(), tmp_path, backend="ray")
+    with pytest.raises(ValueError, match="unknown backend 'dask'; available: local, ray"):
+        runner.run_units(plan(), FakeExecutor(), tmp_path, backend="dask")
     with pytest.raises(ValueError, match="unknown resume policy 'always'; choose one of only-missing, never"):
         runner.run_units(plan(), FakeExecutor(), tmp_path, resume="always")
     assert not (tmp_path / "units").exists()

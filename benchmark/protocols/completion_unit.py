@@ -337,7 +337,7 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
                       lambda_prior=float(obj["lambda_prior"]), generator=g, device=device,
                       loss_vertices=_loss_vertices(profile))
     t1 = time.perf_counter()
-    output, _, _ = decode_output(state, body, batch.output_timestamps)
+    output, rot, trans = decode_output(state, body, batch.output_timestamps)
     sp = profile.get("surface_points", "all")
     no_joints = data.gt_joints is None
     if no_joints:  # captured scans: the evaluation's joint column is computed on zeros and dropped below
@@ -358,7 +358,24 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
         "sequence_ids": list(unit.sequence_ids), "fingerprint": fp, "per_sequence": per_seq,
         "timings": {"fit_s": t1 - t0, "eval_s": t2 - t1}, "device": str(device), "na_reason": None,
         "fit_log": info["history"],
+        # the runner stores it as .npz; captured scans have no ground-truth motion to store beside the fit
+        "arrays": None if no_joints else unit_arrays(unit, data_source, data, batch, rot, trans, state.shape()),
     }
+
+
+def unit_arrays(unit, data_source: CompletionData, data: UnitData, batch, rot, trans, shape) -> dict:
+    """The fitted and ground-truth motion at the output timestamps and a subsample of the
+    observation, for the report's animations (:mod:`benchmark.unit_arrays`)."""
+    from benchmark.unit_arrays import fit_arrays, ground_truth_pose
+
+    d = data_source.spec["data"]
+    start = float(d.get("window_start_s", 0.0))
+    motions = [data_source.motions[sid] for sid in unit.sequence_ids]
+    if start:
+        motions = [m.window(float(m.timestamps[0]) + start, m.duration - start) for m in motions]
+    gt_rot, gt_trans, gt_shape = ground_truth_pose(data_source.body, motions, data.scans.timestamps[:, :1] + data.out_t)
+    return fit_arrays(unit, data.out_t, rot, trans, shape, gt_rot, gt_trans, gt_shape, batch.timestamps,
+                      batch.points, batch.lengths)
 
 
 # -- the protocol-module interface (benchmark.protocols.table_run.PROTOCOL_MODULES) ----------------

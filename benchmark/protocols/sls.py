@@ -558,4 +558,17 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: SlsData, de
         "timings": {"fit_s": t1 - t0, "eval_s": t2 - t1}, "device": str(device), "na_reason": None,
         "fit_log": info["history"], "terms": info["terms"], "final_weights": info["weights"],
         "decoder": "decode_anchors" if uses_anchor_decoder(adapter) else "completion.body_parameters",
+        "arrays": unit_arrays(unit, source, data, obs, rot, trans, state.shape()),  # the runner stores it as .npz
     }
+
+
+def unit_arrays(unit, source: SlsData, data: SlsUnitData, obs: Observation, rot, trans, shape) -> dict:
+    """The fitted and ground-truth motion at the anchors and a subsample of the observed scans,
+    for the report's animations (:mod:`benchmark.unit_arrays`)."""
+    from benchmark.unit_arrays import fit_arrays, ground_truth_pose
+
+    motions = [source.motions[sid] for sid in unit.sequence_ids]
+    gt_rot, gt_trans, gt_shape = ground_truth_pose(source.body, motions, data.anchor_t)
+    t0 = data.anchor_t[:, :1]
+    return fit_arrays(unit, data.anchor_t - t0, rot, trans, shape, gt_rot, gt_trans, gt_shape, obs.timestamps - t0,
+                      obs.points)

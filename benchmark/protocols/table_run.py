@@ -158,8 +158,57 @@ def na_result(unit, reason: str) -> dict:
     }
 
 
+class TableExecutor:
+    """``execute(unit) -> unit result`` for one table run: the protocol, the built adapters (their
+    weights), the body, and the data source with the test motions.
+
+    It holds no closures and no open resources, so a backend can pickle it once and ship it to
+    worker processes or Ray workers (:mod:`benchmark.backends`): the weights and the test split
+    travel once per worker, never per unit. ``unit_cost`` lets a parallel backend order units
+    longest-first.
+    """
+
+    def __init__(self, module_name: str, spec: dict, profile: dict, adapters: dict, body, source, device):
+        self.module_name = module_name
+        self.spec = spec
+        self.profile = profile
+        self.adapters = adapters
+        self.body = body
+        self.source = source
+        self.device = device
+
+    @property
+    def module(self):
+        import importlib
+
+        return importlib.import_module(self.module_name)
+
+    def __call__(self, unit) -> dict:
+        module = self.module
+        adapter = self.adapters[unit.prior]
+        reason = module.na_reason(self.spec, adapter) if hasattr(module, "na_reason") else None
+        if reason:
+            return na_result(unit, reason)
+        return module.run_unit(unit, self.spec, self.profile, adapter, self.body, self.source, self.device)
+
+    def unit_cost(self, unit) -> float:
+        """Relative cost of a unit (for longest-first ordering): the protocol's ``unit_cost`` when
+        it has one, else :func:`benchmark.backends.estimate_cost`."""
+        module = self.module
+        if hasattr(module, "unit_cost"):
+            return float(module.unit_cost(unit, self.spec, self.profile))
+        from benchmark.backends import estimate_cost
+
+        return estimate_cost(unit)
+
+
 def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="only-missing", size="embedded",
-              weights=None, data=None, backend="local") -> dict:
+              weights=None, data=None, backend="local", backend_options: dict | None = None) -> dict:
+    """Run a table and write it. ``backend``: ``"local"`` or ``"ray"`` (or a backend callable, see
+    :mod:`benchmark.runner`); ``backend_options``: its options (local: ``jobs``; ray: ``address``,
+    ``cpus_per_unit``, ``gpus_per_unit``), see :func:`benchmark.backends.make_backend`. The backend
+    never changes a number."""
+    from benchmark.backends import make_backend
     from benchmark.registry import make_adapter, weights_content_sha256
     from benchmark.results import derive_table, plan_units
     from benchmark.runner import run_units
@@ -170,6 +219,8 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     unknown = set(weights) - set(priors)
     if unknown:
         raise ValueError(f"--weights given for priors not being run: {sorted(unknown)}")
+    # build the backend first: a bad option fails before any data is loaded
+    run_backend = backend if callable(backend) else make_backend(backend, device=str(device), **(backend_options or {}))
     if hasattr(module, "load_motions"):
         motions = module.load_motions(spec, data, body)
     else:
@@ -180,39 +231,25 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
         n_cells *= len(values)
     print(f"{len(ids)} sequences, {len(priors)} priors, {n_cells} cells, {profile['steps']} steps per fit")
 
+    # build every adapter before planning, so the spec hash covers the embedded weights' hashes
     adapters = {}
     prior_info = {}
     for name in priors:
-        adapters[name] = None
         w = weights.get(name)
-        prior_info[name] = {"size": size, "weights": w, "weights_sha256": _sha_file(w)}
-
-    def get_adapter(name):
-        if adapters[name] is None:
-            adapters[name] = make_adapter(name, size=size, weights=weights.get(name), device=device)
-            info = prior_info[name]
-            # the content of every weights file the adapter read (embedded or given): new weights
-            # under the same file name invalidate stored results
-            info["embedded_sha256"] = getattr(adapters[name], "weights_sha256", None) or weights_content_sha256(adapters[name])
-        return adapters[name]
-
-    # resolve the embedded weights' hashes before planning, so the spec hash covers them
-    for name in priors:
-        get_adapter(name)
+        adapters[name] = make_adapter(name, size=size, weights=w, device=device)
+        # the content of every weights file the adapter read (embedded or given): new weights under
+        # the same file name invalidate stored results
+        prior_info[name] = {"size": size, "weights": w, "weights_sha256": _sha_file(w),
+                            "embedded_sha256": getattr(adapters[name], "weights_sha256", None)
+                            or weights_content_sha256(adapters[name])}
 
     # the content of the motion data each sequence id stands for enters its units' spec hash
     data_hashes = {sid: motion_sha256(motions[sid]) for sid in ids}
     units = plan_units(spec, profile, priors, ids, seed, device, prior_info, data_hashes=data_hashes)
     source = module.make_source(spec, body, motions, seed)
+    execute = TableExecutor(module.__name__, spec, profile, adapters, body, source, device)
 
-    def execute(unit):
-        adapter = get_adapter(unit.prior)
-        reason = module.na_reason(spec, adapter) if hasattr(module, "na_reason") else None
-        if reason:
-            return na_result(unit, reason)
-        return module.run_unit(unit, spec, profile, adapter, body, source, device)
-
-    report = run_units(units, execute, out_dir, resume=resume, backend=backend)
+    report = run_units(units, execute, out_dir, resume=resume, backend=run_backend)
     results, failures = report
     meta = {"units": units, "profile": profile, "seed": seed, "device": str(device), "priors": prior_info,
             "sequences": ids, "data": data or "synthetic:test", "body": body.name, "resume": report.resume_counts()}

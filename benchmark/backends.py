@@ -1,0 +1,534 @@
+"""Execution backends that run work units in parallel: worker processes on this machine
+(``run --jobs N``) and Ray (``run --backend ray``), on one machine or a cluster.
+
+Both fit the runner's seam ``backend(units, execute, on_done)`` (:mod:`benchmark.runner`): the
+driver (this process) keeps the results store, the resume rules, the progress bar and the table;
+a backend only executes units elsewhere and hands each outcome back through ``on_done`` as it
+arrives. So a parallel run writes the same unit files as a serial one, and a run interrupted on
+one backend resumes on another.
+
+Nothing but the backend may change a number, and it does not:
+
+- the executor (:class:`benchmark.protocols.table_run.TableExecutor`: the built adapters with
+  their weights, the body, the test motions) is pickled once on the driver and shipped once to
+  each worker process (``--jobs``) or put once in Ray's object store (each Ray worker process
+  fetches it once and keeps it), never per unit;
+- every unit's randomness comes from its own seed, never from the order units run in, and each
+  worker runs units with a fixed number of torch threads (one by default), so a unit's result is
+  the same on any worker, in any order; the tests check bit-identity against the serial run.
+
+Units are submitted longest-first (:func:`longest_first`), so the slowest units do not start last
+and leave the other workers idle at the end.
+
+A unit that raises on a worker comes back as a :class:`UnitError` carrying the worker's traceback;
+the other units go on. A worker process that dies (out of memory, a crash in native code) fails
+the unit it was running and is replaced.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+import pickle
+import re
+import socket
+import traceback
+import uuid
+from collections import deque
+from pathlib import Path
+from typing import Callable, Sequence
+
+log = logging.getLogger(__name__)
+
+__all__ = ["ProcessBackend", "RayBackend", "UnitError", "WorkerDied", "code_fingerprint", "default_jobs",
+           "estimate_cost", "longest_first", "make_backend"]
+
+_NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
+
+
+# --------------------------------------------------------------------------------------------
+# Ordering
+# --------------------------------------------------------------------------------------------
+
+def estimate_cost(unit) -> float:
+    """A unit's relative cost for ordering (only its rank matters): the number of sequences times
+    the product of ``1 + |v|`` over the numbers in its cell (table1: points and fps; sls:
+    ``p10000`` reads as 10000). A heuristic: more observed points, frames, noise or gap cost more."""
+    cost = float(max(1, len(unit.sequence_ids)))
+    for value in unit.cell.values():
+        if isinstance(value, bool):
+            continue
+        if isinstance(value, (int, float)):
+            numbers = [float(value)]
+        else:
+            numbers = [float(m) for m in _NUMBER.findall(str(value))]
+        for v in numbers:
+            if math.isfinite(v):
+                cost *= 1.0 + abs(v)
+    return cost
+
+
+def longest_first(units: Sequence, execute=None) -> list:
+    """``units`` sorted by decreasing cost (``execute.unit_cost(unit)`` when the executor has it,
+    else :func:`estimate_cost`); ties keep the plan order, so units of one cell stay together."""
+    cost_of = getattr(execute, "unit_cost", None) or estimate_cost
+    costs = [float(cost_of(u)) for u in units]
+    order = sorted(range(len(units)), key=lambda i: (-costs[i], i))
+    return [units[i] for i in order]
+
+
+# --------------------------------------------------------------------------------------------
+# Errors that come back from workers
+# --------------------------------------------------------------------------------------------
+
+class UnitError(RuntimeError):
+    """A unit raised on a worker. ``str()`` names the original exception type, its message, the
+    worker (host and process id) and the worker's traceback."""
+
+    def __init__(self, type_name: str, message: str, remote_traceback: str, where: str):
+        self.type_name = type_name
+        self.message = message
+        self.remote_traceback = remote_traceback
+        self.where = where
+        super().__init__(f"{type_name}: {message} (on worker {where})\n--- worker traceback ---\n"
+                         f"{remote_traceback.rstrip()}")
+
+
+class WorkerDied(RuntimeError):
+    """The worker process running a unit died without an answer (killed for memory, or a crash in
+    native code)."""
+
+
+def _where() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _execute_unit(execute, unit) -> tuple:
+    """Run one unit on a worker; exceptions become a picklable error reply (with the traceback)."""
+    try:
+        return ("ok", execute(unit))
+    except Exception as exc:  # one failing unit must not take the worker (or the run) down
+        return ("error", type(exc).__name__, str(exc), traceback.format_exc(), _where())
+
+
+def _reply_to_outcome(reply) -> tuple[dict | None, BaseException | None]:
+    if reply[0] == "ok":
+        return reply[1], None
+    _, type_name, message, tb, where = reply
+    return None, UnitError(type_name, message, tb, where)
+
+
+def _dumps_executor(execute) -> bytes:
+    try:
+        return pickle.dumps(execute, protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception as exc:
+        raise ValueError(f"the unit executor ({type(execute).__qualname__}) cannot be pickled, so it cannot be shipped "
+                         f"to worker processes: {type(exc).__name__}: {exc}. Run with --jobs 1 (in this process), or "
+                         f"make it picklable (no lambdas, open files or locks; see "
+                         f"benchmark.protocols.table_run.TableExecutor)") from exc
+
+
+def _set_threads(threads: int) -> None:
+    import torch
+
+    if torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+
+
+# --------------------------------------------------------------------------------------------
+# Worker processes on this machine (--jobs N)
+# --------------------------------------------------------------------------------------------
+
+def default_jobs(device: str = "cpu") -> int:
+    """``--jobs`` default: the CPU cores this process may use; 1 on CUDA (one device)."""
+    if str(device).startswith("cuda"):
+        return 1
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _process_worker(conn, payload_path: str, threads: int) -> None:
+    """Worker process main: load the executor once (from the file the driver wrote), say
+    ``ready``, then run the units the driver sends one at a time until it sends ``None``."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the driver handles Ctrl-C and stops the workers
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(threads)
+    try:
+        _set_threads(threads)
+        with open(payload_path, "rb") as fh:
+            execute = pickle.load(fh)
+    except BaseException:
+        conn.send(("init-error", traceback.format_exc(), _where()))
+        return
+    conn.send(("ready",))
+    while True:
+        try:
+            unit = conn.recv()
+        except (EOFError, OSError):
+            return
+        if unit is None:
+            return
+        reply = _execute_unit(execute, unit)
+        try:
+            conn.send(reply)
+        except Exception as exc:  # a result that cannot be pickled back
+            conn.send(("error", type(exc).__name__, f"the unit's result could not be sent back: {exc}",
+                       traceback.format_exc(), _where()))
+
+
+class ProcessBackend:
+    """Run units in ``jobs`` worker processes on this machine, ``threads`` torch threads each.
+
+    Workers are started with the ``spawn`` method (no fork of a process that holds torch thread
+    pools); the executor is pickled once here, into a temporary file that each worker loads once.
+    A worker runs one unit at a time, so a worker that dies fails exactly the unit it was running;
+    it is replaced and the other units go on. A worker that cannot start (or cannot load the
+    executor) stops the run with its error.
+    """
+
+    def __init__(self, jobs: int, threads: int = 1, start_method: str = "spawn"):
+        if not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 1:
+            raise ValueError(f"--jobs must be a positive integer, got {jobs!r}")
+        if not isinstance(threads, int) or threads < 1:
+            raise ValueError(f"threads per job must be a positive integer, got {threads!r}")
+        self.jobs = jobs
+        self.threads = threads
+        self.start_method = start_method
+
+    def __repr__(self) -> str:
+        return f"ProcessBackend(jobs={self.jobs}, threads={self.threads})"
+
+    def __call__(self, units: Sequence, execute: Callable, on_done: Callable) -> None:
+        if not units:
+            return
+        import multiprocessing as mp
+        import tempfile
+        from multiprocessing.connection import wait
+
+        queue = deque(longest_first(units, execute))
+        payload = _dumps_executor(execute)
+        fd, payload_path = tempfile.mkstemp(prefix="benchmark-executor-", suffix=".pkl")
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(payload)
+        del payload
+        ctx = mp.get_context(self.start_method)
+        workers: list[dict] = []  # {"proc", "conn", "unit", "ready"}
+
+        def start() -> None:
+            parent, child = ctx.Pipe(duplex=True)
+            proc = ctx.Process(target=_process_worker, args=(child, payload_path, self.threads),
+                               name="benchmark-unit-worker", daemon=True)
+            proc.start()
+            child.close()
+            workers.append({"proc": proc, "conn": parent, "unit": None, "ready": False})
+
+        def retire(w: dict) -> None:
+            workers.remove(w)
+            try:
+                w["conn"].close()
+            except OSError:
+                pass
+            w["proc"].join(timeout=5)
+
+        def feed(w: dict) -> None:
+            """Give a ready worker the next unit, or let it go when there is none."""
+            if not queue:
+                try:
+                    w["conn"].send(None)
+                except OSError:
+                    pass
+                retire(w)
+                return
+            w["unit"] = queue.popleft()
+            try:
+                w["conn"].send(w["unit"])
+            except OSError:  # it is gone: the unit goes to a fresh worker
+                queue.appendleft(w["unit"])
+                w["unit"] = None
+                retire(w)
+                start()
+
+        try:
+            for _ in range(min(self.jobs, len(queue))):
+                start()
+            while workers:
+                by_handle = {}
+                for w in workers:
+                    by_handle[w["conn"]] = w
+                    by_handle[w["proc"].sentinel] = w
+                for handle in wait(list(by_handle)):
+                    w = by_handle[handle]
+                    if w not in workers:
+                        continue  # handled through its other handle
+                    reply, eof = None, False
+                    try:
+                        if w["conn"].poll():
+                            reply = w["conn"].recv()
+                    except (EOFError, OSError):
+                        eof = True
+                    if reply is None:
+                        if not eof and w["proc"].is_alive():
+                            continue  # woken without a message: look again
+                        w["proc"].join(timeout=5)
+                        code = w["proc"].exitcode
+                        unit = w["unit"]
+                        retire(w)
+                        if not w["ready"]:
+                            raise RuntimeError(f"a worker process exited while starting (exit code {code}), before "
+                                               f"it could run a unit; its error is above. Run with --jobs 1 to run "
+                                               f"in this process")
+                        if unit is not None:
+                            signal_note = f", killed by signal {-code}" if isinstance(code, int) and code < 0 else ""
+                            on_done(unit, None, WorkerDied(
+                                f"the worker process running {unit.unit_id} died (exit code {code}{signal_note}) "
+                                f"without a result: out of memory, or a crash in native code? Rerun to retry it"))
+                        if queue:
+                            start()
+                        continue
+                    if reply[0] == "init-error":
+                        raise RuntimeError(f"a worker process could not load the unit executor (on {reply[2]}); "
+                                           f"nothing was run there:\n{reply[1]}")
+                    if reply[0] == "ready":
+                        w["ready"] = True
+                    else:
+                        unit, w["unit"] = w["unit"], None
+                        result, error = _reply_to_outcome(reply)
+                        on_done(unit, result, error)
+                    feed(w)
+        finally:
+            for w in workers:
+                try:
+                    if w["unit"] is None and w["ready"]:
+                        w["conn"].send(None)
+                except OSError:
+                    pass
+            for w in workers:
+                w["proc"].join(timeout=2 if w["unit"] is None else 0)
+                if w["proc"].is_alive():
+                    w["proc"].terminate()
+                    w["proc"].join(timeout=5)
+                try:
+                    w["conn"].close()
+                except OSError:
+                    pass
+            try:
+                os.unlink(payload_path)
+            except OSError:
+                pass
+
+
+# --------------------------------------------------------------------------------------------
+# Ray (--backend ray)
+# --------------------------------------------------------------------------------------------
+
+# Worker side: the executor of the current run, fetched from the object store once per process.
+_WORKER_EXECUTORS: dict = {}
+_FINGERPRINT: list = []
+
+
+def code_fingerprint() -> str:
+    """sha256 over the Python sources of the ``benchmark`` and ``priors`` packages (relative path
+    and bytes of every ``.py`` file): the driver and every Ray worker must run the same code."""
+    if _FINGERPRINT:
+        return _FINGERPRINT[0]
+    import importlib
+
+    h = hashlib.sha256()
+    for name in ("benchmark", "priors"):
+        try:
+            root = Path(importlib.import_module(name).__file__).parent
+        except ImportError:
+            h.update(f"{name}: missing\n".encode())
+            continue
+        for path in sorted(root.rglob("*.py")):
+            if "__pycache__" in path.parts:
+                continue
+            h.update(f"{name}/{path.relative_to(root).as_posix()}\n".encode())
+            h.update(path.read_bytes())
+    _FINGERPRINT.append(h.hexdigest())
+    return _FINGERPRINT[0]
+
+
+def _ray_task(token: str, boxed_ref: list, unit, threads: int, fingerprint: str | None) -> tuple:
+    """One unit on a Ray worker. ``boxed_ref`` holds the executor's object reference inside a list,
+    so that Ray does not fetch it for every task; it is fetched on this worker's first unit."""
+    try:
+        _set_threads(threads)
+        if fingerprint is not None and code_fingerprint() != fingerprint:
+            import benchmark
+
+            raise RuntimeError(f"this Ray worker runs other benchmark code than the driver (code fingerprint "
+                               f"{code_fingerprint()[:12]} here, {fingerprint[:12]} on the driver; package at "
+                               f"{Path(benchmark.__file__).parent}): install the same commit of the project on "
+                               f"every node (README, 'Scale out')")
+    except Exception as exc:
+        return ("init-error", f"{type(exc).__name__}: {exc}", _where())
+    execute = _WORKER_EXECUTORS.get(token)
+    if execute is None:
+        try:
+            import ray
+
+            execute = ray.get(boxed_ref[0])
+        except Exception:  # e.g. a module the executor needs is missing on this worker
+            return ("init-error", traceback.format_exc(), _where())
+        _WORKER_EXECUTORS.clear()  # keep only the current run's
+        _WORKER_EXECUTORS[token] = execute
+    return _execute_unit(execute, unit)
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError as exc:
+        raise ValueError("--backend ray needs Ray: pip install -e \".[ray]\" (or pip install \"ray>=2.9\")") from exc
+    return ray
+
+
+class RayBackend:
+    """Each unit one Ray task asking for ``cpus_per_unit`` CPUs and ``gpus_per_unit`` GPUs.
+
+    address: ``None`` starts a local Ray runtime with this machine's cores (``num_cpus`` to
+        override) and stops it at the end; ``"auto"`` joins the cluster running on this machine
+        (``ray start``); ``HOST:PORT`` joins that cluster's head. When Ray is already initialised
+        in this process (a notebook, the tests) that runtime is used as it is and left running.
+    cpus_per_unit: CPUs a unit reserves; it also sets the unit's torch threads (at least 1).
+    gpus_per_unit: GPUs a unit reserves (a fraction shares a GPU between units).
+    max_retries: Ray's retries of a unit whose worker or node was lost (not of a unit that raised).
+    check_code: workers refuse to run when their ``benchmark``/``priors`` sources differ from the
+        driver's (:func:`code_fingerprint`), since other code could change a number.
+    """
+
+    def __init__(self, address: str | None = None, cpus_per_unit: float = 1, gpus_per_unit: float = 0,
+                 num_cpus: int | None = None, max_retries: int = 1, check_code: bool = True):
+        if address is not None and not (address == "auto" or re.fullmatch(r"(ray://)?[^\s:]+:\d+", address)):
+            raise ValueError(f"--ray-address must be 'auto' or HOST:PORT (the head node's GCS address, default port "
+                             f"6379), got {address!r}")
+        if not (isinstance(cpus_per_unit, (int, float)) and cpus_per_unit > 0):
+            raise ValueError(f"--cpus-per-unit must be a positive number, got {cpus_per_unit!r}")
+        if not (isinstance(gpus_per_unit, (int, float)) and gpus_per_unit >= 0):
+            raise ValueError(f"--gpus-per-unit must be a number >= 0, got {gpus_per_unit!r}")
+        self.address = address
+        self.cpus_per_unit = cpus_per_unit
+        self.gpus_per_unit = gpus_per_unit
+        self.num_cpus = num_cpus
+        self.max_retries = max_retries
+        self.check_code = check_code
+
+    def __repr__(self) -> str:
+        return (f"RayBackend(address={self.address!r}, cpus_per_unit={self.cpus_per_unit}, "
+                f"gpus_per_unit={self.gpus_per_unit})")
+
+    @property
+    def threads(self) -> int:
+        return max(1, int(self.cpus_per_unit))
+
+    def _connect(self, ray) -> bool:
+        """Initialise Ray if needed; True when this backend owns the connection (and shuts it down)."""
+        if ray.is_initialized():
+            return False
+        env = {var: str(self.threads) for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+        if self.address is None:
+            num_cpus = self.num_cpus or default_jobs("cpu")
+            log.info("starting a local Ray runtime with %d CPUs", num_cpus)
+            ray.init(num_cpus=num_cpus, include_dashboard=False, runtime_env={"env_vars": env})
+        else:
+            log.info("joining the Ray cluster at %s", self.address)
+            try:
+                ray.init(address=self.address, runtime_env={"env_vars": env})
+            except ConnectionError as exc:
+                raise ValueError(f"--ray-address {self.address}: no Ray cluster there ({exc}); start one with "
+                                 f"'ray start --head' (README, 'Scale out')") from exc
+        return True
+
+    def _check_resources(self, ray) -> None:
+        total = ray.cluster_resources()
+        for what, need, flag in (("CPU", self.cpus_per_unit, "--cpus-per-unit"), ("GPU", self.gpus_per_unit, "--gpus-per-unit")):
+            have = float(total.get(what, 0.0))
+            if need and need > have:
+                raise ValueError(f"{flag} {need:g}: the Ray cluster has {have:g} {what}(s) in all, so no unit could "
+                                 f"ever be scheduled; lower {flag} or add nodes")
+
+    def __call__(self, units: Sequence, execute: Callable, on_done: Callable) -> None:
+        if not units:
+            return
+        ray = _import_ray()
+        owned = self._connect(ray)
+        pending: dict = {}
+        try:
+            self._check_resources(ray)
+            ordered = longest_first(units, execute)
+            try:
+                ref = ray.put(execute)  # once: every worker fetches it from the object store
+            except Exception as exc:
+                raise ValueError(f"the unit executor ({type(execute).__qualname__}) cannot be serialised for Ray: "
+                                 f"{type(exc).__name__}: {exc}") from exc
+            token = uuid.uuid4().hex
+            fingerprint = code_fingerprint() if self.check_code else None
+            task = ray.remote(_ray_task).options(num_cpus=self.cpus_per_unit, num_gpus=self.gpus_per_unit,
+                                                 max_retries=self.max_retries, name="benchmark-unit")
+            for unit in ordered:
+                pending[task.remote(token, [ref], unit, self.threads, fingerprint)] = unit
+            while pending:
+                ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
+                for r in ready:
+                    unit = pending.pop(r)
+                    try:
+                        reply = ray.get(r)
+                    except Exception as exc:  # the worker or its node was lost (after retries), or cancelled
+                        on_done(unit, None, WorkerDied(f"Ray could not run {unit.unit_id}: {type(exc).__name__}: {exc}"))
+                        continue
+                    if reply[0] == "init-error":
+                        raise RuntimeError(f"a Ray worker ({reply[2]}) could not load the unit executor, so no unit "
+                                           f"can run there; the run is stopped:\n{reply[1]}")
+                    result, error = _reply_to_outcome(reply)
+                    on_done(unit, result, error)
+        finally:
+            for r in pending:  # interrupted: do not leave the cluster busy with a run nobody collects
+                try:
+                    ray.cancel(r, force=True)
+                except Exception:  # noqa: BLE001 - best effort while unwinding
+                    pass
+            if owned:
+                ray.shutdown()
+
+
+# --------------------------------------------------------------------------------------------
+# Construction from the command line
+# --------------------------------------------------------------------------------------------
+
+def make_backend(name: str = "local", device: str = "cpu", jobs: int | None = None, address: str | None = None,
+                 cpus_per_unit: float | None = None, gpus_per_unit: float | None = None):
+    """The backend callable for ``run --backend NAME`` and its options.
+
+    local: ``jobs`` worker processes with one torch thread each (``jobs`` None or 1: in this
+        process, one unit after another, as before). ray: :class:`RayBackend` (``gpus_per_unit``
+        defaults to 1 on a CUDA device, else 0; ``cpus_per_unit`` to 1).
+    """
+    from benchmark.runner import BACKENDS
+
+    if name == "local":
+        given = [f for f, v in (("--ray-address", address), ("--cpus-per-unit", cpus_per_unit),
+                                ("--gpus-per-unit", gpus_per_unit)) if v is not None]
+        if given:
+            raise ValueError(f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to --backend ray; "
+                             f"the local backend takes --jobs")
+        if jobs is None or jobs == 1:
+            return BACKENDS["local"]
+        return ProcessBackend(jobs)
+    if name == "ray":
+        if jobs is not None:
+            raise ValueError("--jobs applies to --backend local; on Ray every unit is a task, sized by --cpus-per-unit "
+                             "and --gpus-per-unit")
+        if gpus_per_unit is None:
+            gpus_per_unit = 1 if str(device).startswith("cuda") else 0
+        return RayBackend(address=address, cpus_per_unit=1 if cpus_per_unit is None else cpus_per_unit,
+                          gpus_per_unit=gpus_per_unit)
+    if name in BACKENDS:
+        return BACKENDS[name]
+    raise ValueError(f"unknown backend {name!r}; available: {', '.join(sorted(BACKENDS))}")

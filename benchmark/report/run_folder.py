@@ -1,0 +1,93 @@
+"""Reading a finished run folder: its table JSONs, its unit JSONs and their stored arrays."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from benchmark.results import canonical_json, si_metric
+from benchmark.unit_arrays import arrays_path
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RunFolder:
+    root: Path
+    tables: list  # table JSONs (benchmark.results.derive_table), sorted by name
+    units: dict = field(default_factory=dict)  # table name -> (prior, cell key) -> [unit JSON, ...] (plan order)
+    skipped: list = field(default_factory=list)  # (path, why) of files that could not be read
+
+    def units_of(self, table: str, prior: str, cell: dict) -> list:
+        return self.units.get(table, {}).get((prior, cell_key(cell)), [])
+
+    def npz_path(self, unit: dict) -> Path:
+        return arrays_path(self.root, unit["unit_id"])
+
+
+def cell_key(cell: dict) -> str:
+    return canonical_json({k: v for k, v in cell.items()})
+
+
+def _is_table(obj) -> bool:
+    return isinstance(obj, dict) and {"table", "rows", "grid", "metrics"} <= set(obj)
+
+
+def load_run(path) -> RunFolder:
+    """Read ``path``: every ``<table>.json`` at its top level and every ``units/*.json``.
+
+    Raises FileNotFoundError naming the folder and the fix when there is no table JSON.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise FileNotFoundError(f"report: run folder {root} does not exist (give the --out folder of "
+                                f"'python -m benchmark run TABLE', default runs/latest)")
+    tables, skipped = [], []
+    for f in sorted(root.glob("*.json")):
+        try:
+            obj = json.loads(f.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            skipped.append((f, f"unreadable JSON ({exc})"))
+            continue
+        if _is_table(obj):
+            obj["_file"] = f.name  # several tables (or profiles of one) may share a folder
+            tables.append(obj)
+    if not tables:
+        raise FileNotFoundError(
+            f"report: {root} holds no table JSON (a <table>.json with fields table, rows, grid, metrics, written by "
+            f"'python -m benchmark run TABLE --out {root}'); is this the run folder?")
+    units: dict = {}
+    for f in sorted((root / "units").glob("*.json")):
+        try:
+            u = json.loads(f.read_text(encoding="utf-8"))
+            table = (u.get("spec") or {}).get("table") or u["unit_id"].split("__")[0]
+            key = (u["prior"], cell_key(u["cell"]))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            skipped.append((f, f"not a unit result ({type(exc).__name__}: {exc})"))
+            continue
+        units.setdefault(table, {}).setdefault(key, []).append(u)
+    for by_cell in units.values():
+        for lst in by_cell.values():
+            lst.sort(key=lambda u: u["unit_id"])
+    for f, why in skipped:
+        log.warning("report: skipping %s: %s", f, why)
+    return RunFolder(root=root, tables=sorted(tables, key=lambda t: (t["table"], t["_file"])), units=units, skipped=skipped)
+
+
+def sequence_rows(units: list, metrics: list) -> list[dict]:
+    """Per-sequence means in reported units of ``metrics`` (names such as ``chamfer_mm``), with the
+    unit id and any extra per-sequence fields the protocol stored (e.g. diagnostics)."""
+    rows = []
+    for u in units:
+        for s in u.get("per_sequence") or []:
+            frames = s.get("frames") or 0
+            row = {"id": s.get("id"), "unit_id": u["unit_id"], "frames": frames}
+            sums = s.get("sums") or {}
+            for m in metrics:
+                si, factor = si_metric(m)
+                row[m] = sums[si] / frames * factor if si in sums and frames else (s.get(m) if m in s else None)
+            row["extra"] = {k: v for k, v in s.items() if k not in ("id", "frames", "sums")}
+            rows.append(row)
+    return rows
