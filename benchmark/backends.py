@@ -43,7 +43,7 @@ from typing import Callable, Sequence
 log = logging.getLogger(__name__)
 
 __all__ = ["ProcessBackend", "RayBackend", "UnitError", "WorkerDied", "code_fingerprint", "default_jobs",
-           "estimate_cost", "longest_first", "make_backend"]
+           "estimate_cost", "longest_first", "make_backend", "serial_backend", "BACKENDS"]
 
 _NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
 
@@ -135,6 +135,40 @@ def _set_threads(threads: int) -> None:
 
     if torch.get_num_threads() != threads:
         torch.set_num_threads(threads)
+
+
+def serial_backend(units: Sequence, execute, on_done) -> None:
+    """Run units in this process, one after another (``--jobs 1``), each with one torch thread as
+    in a worker process, so that ``--jobs 1``, ``--jobs N`` and Ray store the same bits. The
+    caller's thread count is restored afterwards."""
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        _set_threads(1)
+        for unit in units:
+            try:
+                result = execute(unit)
+            except Exception as exc:  # one failing unit must not take the others down
+                on_done(unit, None, exc)
+            else:
+                on_done(unit, result, None)
+    finally:
+        _set_threads(before)
+
+
+def _ray_backend(units: Sequence, execute, on_done) -> None:
+    """Each unit a Ray task, default options (:class:`RayBackend`; Ray is imported only when it
+    runs, so that the harness does not need it installed)."""
+    RayBackend()(units, execute, on_done)
+
+
+Backend = Callable[[Sequence, Callable, Callable], None]
+
+# name -> backend callable with default options (``backend(units, execute, on_done)``);
+# :func:`make_backend` builds one with options (--jobs, --ray-address...), and
+# ``benchmark.runner.run_units`` takes such a callable too. Add one with ``BACKENDS[name] = fn``.
+BACKENDS: dict = {"local": serial_backend, "ray": _ray_backend}
 
 
 # --------------------------------------------------------------------------------------------
@@ -510,8 +544,6 @@ def make_backend(name: str = "local", device: str = "cpu", jobs: int | None = No
         process, one unit after another, as before). ray: :class:`RayBackend` (``gpus_per_unit``
         defaults to 1 on a CUDA device, else 0; ``cpus_per_unit`` to 1).
     """
-    from benchmark.runner import BACKENDS
-
     if name == "local":
         given = [f for f, v in (("--ray-address", address), ("--cpus-per-unit", cpus_per_unit),
                                 ("--gpus-per-unit", gpus_per_unit)) if v is not None]
@@ -519,7 +551,7 @@ def make_backend(name: str = "local", device: str = "cpu", jobs: int | None = No
             raise ValueError(f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to --backend ray; "
                              f"the local backend takes --jobs")
         if jobs is None or jobs == 1:
-            return BACKENDS["local"]
+            return serial_backend
         return ProcessBackend(jobs)
     if name == "ray":
         if jobs is not None:

@@ -48,6 +48,7 @@ from benchmark.results import (
     validate_unit_result,
     with_checksum,
 )
+from benchmark.backends import BACKENDS, Backend, serial_backend  # noqa: F401  (re-exported; backends never imports this module)
 from benchmark.unit_arrays import ARRAYS_KEY, arrays_path, write_arrays
 
 __all__ = ["BACKENDS", "RESUME_POLICIES", "RunReport", "WorkUnit", "plan_units", "progress_enabled", "run_units"]
@@ -58,31 +59,6 @@ RESUME_POLICIES = ("only-missing", "never")
 
 Executor = Callable[[WorkUnit], dict]
 OnDone = Callable[[WorkUnit, "dict | None", "BaseException | None"], None]
-Backend = Callable[[Sequence[WorkUnit], Executor, OnDone], None]
-
-
-def _local_backend(units: Sequence[WorkUnit], execute: Executor, on_done: OnDone) -> None:
-    """Run units in this process, one after another."""
-    for unit in units:
-        try:
-            result = execute(unit)
-        except Exception as exc:  # one failing unit must not take the others down
-            on_done(unit, None, exc)
-        else:
-            on_done(unit, result, None)
-
-
-def _ray_backend(units: Sequence[WorkUnit], execute: Executor, on_done: OnDone) -> None:
-    """Each unit a Ray task, default options (:class:`benchmark.backends.RayBackend`; Ray is
-    imported only here, so that the harness does not need it installed)."""
-    from benchmark.backends import RayBackend
-
-    RayBackend()(units, execute, on_done)
-
-
-# name -> backend callable with default options; ``benchmark.backends.make_backend`` builds one
-# with options (--jobs, --ray-address...), and ``run_units`` takes such a callable too.
-BACKENDS: dict[str, Backend] = {"local": _local_backend, "ray": _ray_backend}
 
 
 @dataclass

@@ -10,38 +10,20 @@ scan sampled at those timestamps).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from benchmark.degrade import degrade, fingerprint
 from benchmark.observations import make_scans, sample_surface
+from benchmark.protocols.unit_data import UnitData, stable_seed  # noqa: F401  (re-exported)
 from benchmark.protocols.completion import decode_output, fit, observation_batch
 
 log = logging.getLogger(__name__)
 
 NO_GT_JOINTS = "no ground-truth joints"  # the MPJPE n/a reason on captured scans
-
-
-def stable_seed(*parts) -> int:
-    h = hashlib.sha256("|".join(str(p) for p in parts).encode()).digest()
-    return int.from_bytes(h[:4], "little")
-
-
-@dataclass
-class UnitData:
-    scans: object  # PointCloudSequence at the capture rate, for the window
-    out_t: torch.Tensor  # (B, T_out) seconds from the window start
-    gt_points: torch.Tensor  # (B, T_out, N, 3)
-    gt_joints: torch.Tensor | None  # (B, T_out, 22, 3); None: captured scans (MPJPE n/a)
-    row_extra: list | None = None  # per sequence: extra fields for its per_sequence row
-    # Built once per batch of sequences (so once per table when a table's units share a batch) and
-    # shared by every prior and cell: KD-trees of the ground-truth scans (see evaluate).
-    cache: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 class CompletionData:
