@@ -182,7 +182,7 @@ def run_complete(args) -> dict:
     t0 = time.perf_counter()
     state, info = fit(adapter, body, batch, steps=steps, lr=float(obj["lr"]), lambda_prior=float(obj["lambda_prior"]),
                       generator=torch.Generator().manual_seed(args.seed), device=device,
-                      loss_vertices=_loss_vertices(profile))
+                      loss_vertices=_loss_vertices(profile), facing=args.facing)
     fit_s = time.perf_counter() - t0
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
 
@@ -251,6 +251,9 @@ def add_complete_command(sub) -> None:
     p.add_argument("--steps", type=int, default=None, help="override the profile's steps")
     p.add_argument("--device", default=None)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--facing", choices=["search", "heading8"], default="search",
+                   help="how the fit finds the facing direction: 'search' fits every yaw hypothesis briefly and keeps "
+                        "the best (issue 11's initialisation); 'heading8' is table1 protocol v1's T-pose yaw score")
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
     p.add_argument("--weights", default=None, help="checkpoint for --size paper")
     p.add_argument("--body", default="anny")

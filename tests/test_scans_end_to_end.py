@@ -255,18 +255,14 @@ def test_complete_on_a_motion_file_and_a_bad_input(tmp_path, capsys):
     assert "no such scan folder or motion file" in capsys.readouterr().err
 
 
-# The fits issue (11) sets the MPJPE a table1 fit must reach; its initialisation and schedule are
-# not in this checkout and its number is not either: 50 mm is this test's assumption, to be aligned
-# with issue 11's target when it lands. The current fit turns this capture around (root
-# orientation 168 deg off, MPJPE 269 mm at the quick profile), hence the strict xfail: the test
-# starts failing, as a reminder to drop the marker, the day the fit reaches the target.
-FITS_MPJPE_TARGET_MM = 50.0
+# Issue 11's target for a converged no-prior fit (MPJPE <= 40 mm at 10,000 points / 10 fps). The
+# facing search (benchmark.protocols.completion.facing_search, what `complete` uses) turns the
+# capture the right way; the schedule that converges the limbs is issue 11's open part, so the
+# MPJPE check is an expected failure until it lands (measured: 38-72 mm per sequence at 60 steps).
+FITS_MPJPE_TARGET_MM = 40.0
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="needs issue 11's initialisation and schedule: the current table1 fit "
-                   "faces this capture backwards (MPJPE 269 mm, root orientation 168 deg off)")
-def test_complete_no_prior_recovers_the_generating_motion(tmp_path, anny_body):
+def _complete_no_prior(tmp_path, anny_body):
     """``complete`` with ``no-prior`` on a 4 s, 60 fps make-scans capture (3 mm noise, 10 % holes)
     against its generating motion, at the default (quick) profile."""
     import argparse
@@ -278,10 +274,23 @@ def test_complete_no_prior_recovers_the_generating_motion(tmp_path, anny_body):
     args = argparse.Namespace(input=str(folder), prior="no-prior", out=str(tmp_path / "out"), points=None, fps=10.0,
                               window=None, start=0.0, meshes=False, no_preview=True, profile="quick", steps=None,
                               device="cpu", seed=0, size="embedded", weights=None, body="anny", up="y", units="m",
-                              capture_fps=None, force=False)
-    diag = run_complete(args)
-    assert diag["truth"]["mpjpe_mm"] <= FITS_MPJPE_TARGET_MM
+                              capture_fps=None, force=False, facing="search")
+    return run_complete(args)
+
+
+@pytest.mark.slow
+def test_complete_faces_the_capture_the_right_way(tmp_path, anny_body):
+    diag = _complete_no_prior(tmp_path, anny_body)
     assert diag["truth"]["frames_facing_backwards"] == 0
+    assert diag["truth"]["root_orientation_err_deg_mean"] <= 10.0
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason="issue 11: the limbs of a 60-step fit from the T-pose stop in local minima (MPJPE 38-72 mm "
+                   "per quick sequence at 10,000 points / 10 fps with the facing search)")
+def test_complete_no_prior_recovers_the_generating_motion(tmp_path, anny_body):
+    diag = _complete_no_prior(tmp_path, anny_body)
+    assert diag["truth"]["mpjpe_mm"] <= FITS_MPJPE_TARGET_MM
 
 
 def test_a_capture_slower_than_the_observed_rate_is_an_error_naming_the_folder(tmp_path):

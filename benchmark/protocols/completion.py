@@ -133,9 +133,10 @@ def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
 
 
 def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device,
-               data_term: StaticChamfer | None = None) -> FitState:
+               data_term: StaticChamfer | None = None, search_heading: bool = True) -> FitState:
     """The initial state of a fit (see module docstring). ``data_term``: the Chamfer against
-    ``batch``'s observed points (frames flattened), when the caller already built it."""
+    ``batch``'s observed points (frames flattened), when the caller already built it.
+    ``search_heading``: run the 8-yaw T-pose search (protocol v1); False leaves the facing at +z."""
     B, n = batch.batch_size, batch.num_observed
     latents = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in adapter.init_latents(batch, generator).items()}
     bounded = body.name == "anny"
@@ -159,7 +160,8 @@ def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Ge
         state.heading = torch.zeros(B, 1, device=device, requires_grad=True)
     if adapter.encodes_translation:
         state.offset = trans0.mean(1).clone().requires_grad_(True)
-    _initial_heading(state, body, batch, data_term)
+    if search_heading:
+        _initial_heading(state, body, batch, data_term)
     return state
 
 
@@ -239,7 +241,7 @@ def optimise(prior_name: str, parameters, steps: int, lr: float, lr_final_fracti
 
 def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lambda_prior: float,
         generator: torch.Generator, device, lr_final_fraction: float = 0.1, loss_vertices: int | None = None,
-        callback=None) -> tuple[FitState, dict]:
+        callback=None, facing: str = "heading8", shape_lr_scale: float = 1.0) -> tuple[FitState, dict]:
     """Optimise one batch (see module docstring). Returns the state and a log of the losses.
 
     ``loss_vertices``: the data term uses a fixed farthest-point subset of that many mesh vertices
@@ -251,9 +253,15 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     and every step.
     """
     subset = body.loss_vertex_indices(loss_vertices)
+    if facing not in FACING_RULES:
+        raise ValueError(f"fit: unknown facing rule {facing!r}; choose one of {', '.join(FACING_RULES)}")
     B, n = batch.batch_size, batch.num_observed
     data_term = StaticChamfer(batch.points.flatten(0, 1), batch.lengths.flatten(0, 1))
-    state = init_state(adapter, body, batch, generator, device, data_term=data_term)
+    facing_log = {}
+    if facing == "search":
+        state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior)
+    else:
+        state = init_state(adapter, body, batch, generator, device, data_term=data_term)
 
     def step_loss(step):
         rot, trans = body_parameters(state, batch.timestamps, observed=True)
@@ -264,8 +272,116 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         return (data + lambda_prior * prior).sum(), lambda: {"data_mm": float(data.detach().mean()),
                                                               "prior": float(prior.detach().mean())}
 
-    history = optimise(adapter.name, state.parameters(), steps, lr, lr_final_fraction, step_loss, callback=callback)
-    return state, {"history": history}
+    params = state.parameters()
+    if shape_lr_scale != 1.0:  # the body shape on its own learning rate
+        params = [{"params": [p for p in params if p is not state.shape_param]},
+                  {"params": [state.shape_param], "lr": lr * shape_lr_scale}]
+    history = optimise(adapter.name, params, steps, lr, lr_final_fraction, step_loss, callback=callback)
+    return state, {"history": history, **facing_log}
+
+
+# How a fit finds the facing direction: "heading8" (protocol v1 of table1): the 8-yaw Chamfer score
+# of the T-pose; "search": :func:`facing_search`, a coarse fit per yaw hypothesis (what `complete`
+# uses; table1 moves to it with its protocol version 2).
+FACING_RULES = ("heading8", "search")
+FACING_HYPOTHESES = 8  # yaw hypotheses of the facing search, evenly spaced about y
+FACING_POINTS = 256  # observed points per frame the hypotheses are scored on
+FACING_VERTICES = 400  # mesh vertices (farthest-point subset) the hypotheses are scored on
+FACING_STEPS = (15, 25)  # coarse-fit steps per hypothesis: rigid parameters only, then every variable
+
+
+def _subset_batch(batch: FitBatch, points: int) -> FitBatch:
+    """The first ``points`` observed points of every frame (i.i.d. uniform samples: an unbiased subset)."""
+    m = min(points, batch.points.shape[2])
+    return FitBatch(points=batch.points[:, :, :m], lengths=batch.lengths.clamp_max(m), timestamps=batch.timestamps,
+                    window_s=batch.window_s, output_timestamps=batch.output_timestamps)
+
+
+def _repeat_batch(batch: FitBatch, k: int) -> FitBatch:
+    """Every sequence of ``batch`` repeated ``k`` times, hypothesis-major per sequence (b0h0, b0h1, ...)."""
+    rep = lambda x: x.repeat_interleave(k, dim=0)  # noqa: E731
+    return FitBatch(points=rep(batch.points), lengths=rep(batch.lengths), timestamps=rep(batch.timestamps),
+                    window_s=batch.window_s, output_timestamps=rep(batch.output_timestamps))
+
+
+def _rigid_parameters(state: FitState) -> list[torch.Tensor]:
+    return [p for p in (state.root, state.trans, state.heading, state.offset) if p is not None]
+
+
+def _data_term(state: FitState, body, batch: FitBatch, subset, chamfer: StaticChamfer) -> torch.Tensor:
+    """(B,) the protocol's data term (mm): Chamfer of the mesh (vertex ``subset``) against the
+    observed points of ``batch`` (``chamfer``: their StaticChamfer), mean over the observed frames."""
+    B, n = batch.batch_size, batch.num_observed
+    rot, trans = body_parameters(state, batch.timestamps, observed=True)
+    rest = body.prepare(state.shape())
+    verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices
+    return chamfer(verts.flatten(0, 1)).view(B, n).mean(1) * 1000.0
+
+
+def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device, lr: float,
+                  lambda_prior: float) -> tuple[FitState, dict]:
+    """The initial state of a fit, with the facing direction found by a coarse multi-hypothesis fit.
+
+    The same rule for every prior (protocol v2). Each sequence is tried at FACING_HYPOTHESES yaw
+    angles about y (applied to the free root orientation, or to the free heading of a
+    heading-normalised decoder). Every hypothesis is fitted briefly on a subset (FACING_POINTS
+    observed points per frame, FACING_VERTICES mesh vertices): FACING_STEPS[0] steps of the rigid
+    parameters only, then FACING_STEPS[1] steps of every variable, with the table's objective.
+    Each sequence keeps the hypothesis with the lowest final data term, and the full fit continues
+    from that hypothesis's fitted variables. A T-pose's Chamfer barely tells front from back; a
+    posed body does (knees and elbows bend one way).
+
+    Priors without a free root orientation or heading (none so far) start from ``init_state``.
+    Returns the state (batch B) and a log: the chosen yaw (radians) and every hypothesis's score.
+    """
+    B = batch.batch_size
+    K = FACING_HYPOTHESES
+    probe = init_state(adapter, body, batch, generator, device, search_heading=False)
+    if probe.root is None and probe.heading is None:
+        return probe, {"facing": "none: the prior has no free root orientation or heading"}
+    small = _subset_batch(_repeat_batch(batch, K), FACING_POINTS)
+    hyp = init_state(adapter, body, small, generator, device, search_heading=False)
+    yaw = (2 * math.pi / K) * torch.arange(K, device=device, dtype=batch.points.dtype).repeat(B)
+    with torch.no_grad():
+        base_root = None if hyp.root is None else hyp.root.detach().clone()
+        base_heading = None if hyp.heading is None else hyp.heading.detach().clone()
+        _set_yaw(hyp, base_root, base_heading, yaw)
+    subset = body.loss_vertex_indices(FACING_VERTICES)
+    chamfer = StaticChamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1))
+
+    def loss_of(step):
+        data = _data_term(hyp, body, small, subset, chamfer)
+        prior = adapter.prior_term(hyp.latents)
+        return (data + lambda_prior * prior).sum(), lambda: {}
+
+    rigid_steps, all_steps = FACING_STEPS
+    optimise(adapter.name, _rigid_parameters(hyp), rigid_steps, lr, 1.0, loss_of)
+    optimise(adapter.name, hyp.parameters(), all_steps, lr, 1.0, loss_of)
+    with torch.no_grad():
+        scores = _data_term(hyp, body, small, subset, chamfer).view(B, K)
+    best = scores.argmin(1)  # (B,)
+    pick = torch.arange(B, device=device) * K + best
+    state = _select(hyp, pick, probe)
+    return state, {"facing_yaw_rad": [float(y) for y in yaw.view(B, K)[torch.arange(B), best]],
+                   "facing_scores_mm": [[round(float(v), 3) for v in row] for row in scores]}
+
+
+def _select(hyp: FitState, pick: torch.Tensor, like: FitState) -> FitState:
+    """The hypotheses ``pick`` (one per sequence) of ``hyp`` as a fresh leaf state shaped like ``like``."""
+    def take(x, ref):
+        if x is None:
+            return None
+        y = x.detach()[pick].clone()
+        if ref is not None and y.shape != ref.shape:
+            raise ValueError(f"facing search: a variable of shape {tuple(x.shape)} is not batch-first "
+                             f"(expected {tuple(ref.shape)} after selection)")
+        return y.requires_grad_(True)
+
+    latents = {k: take(v, like.latents[k]) for k, v in hyp.latents.items()}
+    return FitState(adapter=like.adapter, latents=latents, shape_param=take(hyp.shape_param, like.shape_param),
+                    obs_t=like.obs_t, window_s=like.window_s, root=take(hyp.root, like.root),
+                    trans=take(hyp.trans, like.trans), heading=take(hyp.heading, like.heading),
+                    offset=take(hyp.offset, like.offset), bounded_shape=like.bounded_shape)
 
 
 @torch.no_grad()
