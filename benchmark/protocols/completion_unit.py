@@ -270,17 +270,7 @@ def scan_to_surface_distance(points: torch.Tensor, vertices: torch.Tensor, faces
 
     from benchmark.metrics.surface import point_triangle_distance
 
-    V = vertices.shape[1]
-    F = faces.shape[0]
-    # vertex -> incident faces, padded with a dummy index F (ignored)
-    order = torch.argsort(faces.reshape(-1), stable=True)
-    counts = torch.bincount(faces.reshape(-1), minlength=V)
-    width = int(counts.max())
-    starts = torch.cumsum(counts, 0) - counts
-    slot = torch.arange(width)
-    idx = starts[:, None] + slot[None]
-    valid = slot[None] < counts[:, None]
-    vf = torch.where(valid, (order // 3)[idx.clamp_max(order.numel() - 1)], torch.full_like(idx, F))  # (V, width)
+    vf = _vertex_faces(faces, vertices.shape[1])  # (V, width) incident faces, padded with the dummy index F
     out = []
     for i in range(points.shape[0]):
         tree = scipy.spatial.cKDTree(vertices[i].numpy())
