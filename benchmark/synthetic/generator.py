@@ -32,7 +32,8 @@ from benchmark.body.lbs import forward_kinematics
 from benchmark.motion import Motion
 from benchmark.rotations import matrix_to_axis_angle, slerp_matrices
 from benchmark.skeleton import NUM_JOINTS
-from benchmark.synthetic.actions import ActionInput, get_action
+from benchmark.synthetic.action_base import ActionInput
+from benchmark.synthetic.actions import get_action
 from benchmark.synthetic.contact import interp_uniform, solve_root_track
 from benchmark.synthetic.curves import smoothstep
 from benchmark.synthetic.rest import RestSkeleton
