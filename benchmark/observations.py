@@ -26,23 +26,28 @@ device and then moved, so a CPU generator gives the same samples whatever device
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import roma
 import torch
 
+from benchmark.motion_posing import (  # re-exported: motion posing lives in benchmark.motion_posing
+    DEFAULT_CHUNK_FRAMES,
+    _body_float,
+    _resample_stack,
+    _stack_shapes,
+    capture_timestamps,
+    pose_body,
+)
 from benchmark.skeleton import LANDMARK_NAMES, NUM_JOINTS, NUM_LANDMARKS
+from benchmark.surface_sampling import (  # re-exported: surface sampling lives in benchmark.surface_sampling
+    farthest_point_indices,
+    sample_surface,
+)
 
-# Frames per body call when posing (one chunk: chunk x V x (3 x 4) floats of skinning transforms).
-DEFAULT_CHUNK_FRAMES = 256
-# Frames per chunk when gathering sampled triangles (bounds the (chunk, N, 3) temporaries).
-_SAMPLE_CHUNK_FRAMES = 64
 # Default number of virtual markers for the denoise table (MoSh / HuMoR use 43 marker vertices).
 DEFAULT_NUM_MARKERS = 43
-# Tolerance (s) when checking that requested timestamps lie inside a motion's time span.
-_TIME_TOLERANCE = 1e-6
 
 
 # --------------------------------------------------------------------------- data structures
@@ -259,227 +264,8 @@ class GroundTruth:
                                frame_mask=frame_mask, chunk_frames=chunk_frames)
 
 
-# --------------------------------------------------------------------------- surface sampling
-def sample_surface(
-    vertices: torch.Tensor,
-    faces: torch.Tensor,
-    num_points: int,
-    generator: torch.Generator | None,
-    noise_std: float = 0.0,
-) -> torch.Tensor:
-    """Points sampled uniformly over the area of a triangle mesh, independently per frame.
-
-    vertices: (..., V, 3) e.g. (B, T, V, 3) metres; faces: (F, 3) long; num_points: N.
-    Each point picks a triangle with probability proportional to its area (in that frame's
-    posed mesh), then uniform barycentric coordinates by the square-root trick:
-    ``p = (1 - sqrt(r1)) a + sqrt(r1) (1 - r2) b + sqrt(r1) r2 c``, r1, r2 ~ U[0, 1).
-    Optional isotropic Gaussian noise of std ``noise_std`` metres is added to each coordinate.
-
-    Draw order (for reproducibility): triangle uniforms (..., N) float64, then barycentric
-    uniforms (..., N, 2), then (only when noise_std > 0) the noise (..., N, 3); so the same seed
-    gives the same noiseless points with or without noise. ``generator=None`` uses torch's
-    global RNG (not reproducible across calls).
-    Returns (..., N, 3) in the dtype and on the device of ``vertices``.
-    """
-    if vertices.dim() < 2 or vertices.shape[-1] != 3:
-        raise ValueError(f"sample_surface: vertices must be (..., V, 3), got {tuple(vertices.shape)}")
-    if faces.dim() != 2 or faces.shape[-1] != 3 or faces.shape[0] == 0:
-        raise ValueError(f"sample_surface: faces must be a non-empty (F, 3) index tensor, got {tuple(faces.shape)}")
-    if num_points < 0:
-        raise ValueError(f"sample_surface: num_points must be >= 0, got {num_points}")
-    if noise_std < 0:
-        raise ValueError(f"sample_surface: noise_std is a standard deviation in metres, got {noise_std} < 0")
-    lead = vertices.shape[:-2]
-    V = vertices.shape[-2]
-    faces = faces.to(device=vertices.device, dtype=torch.long)
-    if int(faces.min()) < 0 or int(faces.max()) >= V:
-        raise ValueError(f"sample_surface: faces index vertices outside [0, {V})")
-    flat = vertices.reshape(-1, V, 3)
-    K = flat.shape[0]
-
-    gen_device = generator.device if generator is not None else torch.device("cpu")
-    r_face = torch.rand(K, num_points, dtype=torch.float64, generator=generator, device=gen_device)
-    r_bary = torch.rand(K, num_points, 2, dtype=vertices.dtype, generator=generator, device=gen_device)
-    noise = None
-    if noise_std > 0:
-        noise = torch.randn(K, num_points, 3, dtype=vertices.dtype, generator=generator, device=gen_device)
-    r_face = r_face.to(vertices.device)
-    r_bary = r_bary.to(vertices.device)
-
-    out = vertices.new_empty(K, num_points, 3)
-    for start in range(0, K, _SAMPLE_CHUNK_FRAMES):
-        v = flat[start : start + _SAMPLE_CHUNK_FRAMES]  # (k, V, 3)
-        tri = v[:, faces]  # (k, F, 3, 3)
-        a, b, c = tri.unbind(-2)
-        area = torch.linalg.cross(b - a, c - a).norm(dim=-1).to(torch.float64)  # 2x area, (k, F)
-        cdf = area.cumsum(-1)
-        total = cdf[:, -1:]
-        if not bool((total > 0).all()) or not bool(torch.isfinite(total).all()):
-            bad = int(torch.nonzero(~(total[:, 0] > 0) | ~torch.isfinite(total[:, 0]))[0]) + start
-            raise ValueError(
-                f"sample_surface: frame {bad} (flattened over {tuple(lead)}) has zero or non-finite "
-                "surface area; check the vertices (all zeros? NaN?)"
-            )
-        u = r_face[start : start + v.shape[0]] * total
-        idx = torch.searchsorted(cdf, u, right=True).clamp_(max=faces.shape[0] - 1)  # (k, N)
-        rows = torch.arange(v.shape[0], device=v.device)[:, None]
-        corners = tri[rows, idx]  # (k, N, 3, 3)
-        s = r_bary[start : start + v.shape[0], :, 0:1].sqrt()
-        r2 = r_bary[start : start + v.shape[0], :, 1:2]
-        out[start : start + v.shape[0]] = (
-            (1 - s) * corners[..., 0, :] + s * (1 - r2) * corners[..., 1, :] + s * r2 * corners[..., 2, :]
-        )
-    if noise is not None:
-        out = out + noise_std * noise.to(vertices.device)
-    return out.reshape(*lead, num_points, 3)
-
-
-# --------------------------------------------------------------------------- posing motions
-def _body_float(body: torch.nn.Module) -> tuple[torch.dtype, torch.device]:
-    """The floating dtype and device of a body's buffers (float32 on CPU if it has none)."""
-    for buf in body.buffers():
-        if buf.is_floating_point():
-            return buf.dtype, buf.device
-    return torch.float32, body.faces.device
-
-
-def _motion_span(motion, index: int) -> tuple[float, float]:
-    ts = torch.as_tensor(motion.timestamps, dtype=torch.float64)
-    if ts.dim() != 1 or ts.numel() == 0:
-        raise ValueError(f"motion {index}: timestamps must be a non-empty (T,) tensor, got shape {tuple(ts.shape)}")
-    return float(ts[0]), float(ts[-1])
-
-
-def capture_timestamps(
-    motions: Sequence, fps: float, duration: float | None = None
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The capture grid: frame i of motion b at ``t0_b + i / fps`` (t0_b: the motion's first timestamp).
-
-    duration None: every capture instant inside the motion's closed span [t0, t_end].
-    duration D: a half-open window [t0, t0 + D), i.e. round(D * fps) frames (a 4 s window at
-    50 fps is 200 frames, 0 .. 3.98 s); every motion must be long enough.
-    Returns (timestamps (B, T) float64, frame_mask (B, T) bool); T is the longest sequence.
-    """
-    if not fps > 0:
-        raise ValueError(f"fps must be > 0, got {fps}")
-    if len(motions) == 0:
-        raise ValueError("no motions given")
-    starts, counts = [], []
-    for b, m in enumerate(motions):
-        t0, t1 = _motion_span(m, b)
-        if duration is None:
-            n = int(math.floor((t1 - t0) * fps + 1e-6)) + 1
-        else:
-            if not duration > 0:
-                raise ValueError(f"duration must be > 0 seconds, got {duration}")
-            n = int(round(duration * fps))
-            last = t0 + (n - 1) / fps
-            if last > t1 + _TIME_TOLERANCE:
-                raise ValueError(
-                    f"motion {b} spans {t1 - t0:.4f} s ({t0:.4f} .. {t1:.4f}), but a {duration} s window at "
-                    f"{fps} fps needs frames up to {last:.4f} s: pass a shorter duration or a longer motion"
-                )
-        starts.append(t0)
-        counts.append(max(n, 1))
-    T = max(counts)
-    i = torch.arange(T, dtype=torch.float64)
-    timestamps = torch.tensor(starts, dtype=torch.float64)[:, None] + i / fps
-    frame_mask = i[None, :] < torch.tensor(counts, dtype=torch.float64)[:, None]
-    return timestamps, frame_mask
-
-
-def _stack_shapes(body, motions: Sequence, shapes: torch.Tensor | None, dtype, device) -> torch.Tensor:
-    B = len(motions)
-    if shapes is not None:
-        shapes = torch.as_tensor(shapes)
-        if shapes.dim() == 1:
-            shapes = shapes.expand(B, -1)
-        if shapes.shape != (B, body.shape_dim):
-            raise ValueError(
-                f"shapes must be (batch, {body.shape_dim}) = ({B}, {body.shape_dim}) for body "
-                f"{body.name!r}, got {tuple(shapes.shape)}"
-            )
-        return shapes.to(device=device, dtype=dtype)
-    own = [getattr(m, "shape", None) for m in motions]
-    if all(s is None or torch.as_tensor(s).numel() == 0 for s in own):
-        return body.default_shape(B).to(device=device, dtype=dtype)
-    rows = []
-    for b, s in enumerate(own):
-        if s is None or torch.as_tensor(s).numel() == 0:
-            rows.append(body.default_shape(1)[0].to(device=device, dtype=dtype))
-            continue
-        s = torch.as_tensor(s).reshape(-1)
-        if s.numel() != body.shape_dim:
-            raise ValueError(
-                f"motion {b} carries a shape vector of size {s.numel()}, but body {body.name!r} takes "
-                f"{body.shape_dim} parameters: pass shapes=(batch, {body.shape_dim}) for this body"
-            )
-        rows.append(s.to(device=device, dtype=dtype))
-    return torch.stack(rows)
-
-
-def _resample_stack(motions: Sequence, timestamps: torch.Tensor, frame_mask: torch.Tensor):
-    """Resample each motion at its row of timestamps (padded frames clamped into its span).
-
-    Returns poses (B, T, 22, 3) axis-angle and trans (B, T, 3).
-    """
-    poses, trans = [], []
-    for b, m in enumerate(motions):
-        t0, t1 = _motion_span(m, b)
-        ts = timestamps[b]
-        valid = ts[frame_mask[b]]
-        if valid.numel() and (float(valid.min()) < t0 - _TIME_TOLERANCE or float(valid.max()) > t1 + _TIME_TOLERANCE):
-            raise ValueError(
-                f"motion {b} spans {t0:.4f} .. {t1:.4f} s, but ground truth was asked for at "
-                f"{float(valid.min()):.4f} .. {float(valid.max()):.4f} s: timestamps outside a motion "
-                "cannot be posed (mark them invalid with frame_mask, or pass timestamps inside the span)"
-            )
-        ts_dtype = torch.as_tensor(m.timestamps).dtype
-        r = m.resample(ts.clamp(t0, t1).to(ts_dtype))
-        p = torch.as_tensor(r.poses)
-        tr = torch.as_tensor(r.trans)
-        if p.shape != (ts.shape[0], NUM_JOINTS, 3) or tr.shape != (ts.shape[0], 3):
-            raise ValueError(
-                f"motion {b}: resample gave poses {tuple(p.shape)} and trans {tuple(tr.shape)}, expected "
-                f"({ts.shape[0]}, {NUM_JOINTS}, 3) axis-angle and ({ts.shape[0]}, 3)"
-            )
-        poses.append(p)
-        trans.append(tr)
-    return torch.stack(poses), torch.stack(trans)
-
-
-def pose_body(
-    body, rotations: torch.Tensor, trans: torch.Tensor, shapes: torch.Tensor,
-    chunk_frames: int = DEFAULT_CHUNK_FRAMES,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pose a body in chunks, without gradients.
-
-    rotations (B, T, 22, 3, 3), trans (B, T, 3), shapes (B, S).
-    The rest state is prepared once per batch chunk and shared by its time chunks; at most
-    ``chunk_frames`` frames go through the body at once.
-    Returns vertices (B, T, V, 3) and joints (B, T, 22, 3).
-    """
-    if chunk_frames < 1:
-        raise ValueError(f"chunk_frames must be >= 1, got {chunk_frames}")
-    B, T = rotations.shape[:2]
-    batch_chunk = max(1, chunk_frames // max(T, 1))
-    time_chunk = min(T, chunk_frames) if T > 0 else 1
-    verts, joints = [], []
-    with torch.no_grad():
-        for b0 in range(0, B, batch_chunk):
-            b1 = min(B, b0 + batch_chunk)
-            rest = body.prepare(shapes[b0:b1])
-            v_row, j_row = [], []
-            for t0 in range(0, T, time_chunk):
-                t1 = min(T, t0 + time_chunk)
-                out = body(rotations[b0:b1, t0:t1], trans[b0:b1, t0:t1], rest=rest)
-                v_row.append(out.vertices)
-                j_row.append(out.joints)
-            verts.append(torch.cat(v_row, dim=1))
-            joints.append(torch.cat(j_row, dim=1))
-    return torch.cat(verts), torch.cat(joints)
-
-
+# --------------------------------------------------------------------------- ground truth
+# (sampling a mesh surface: benchmark.surface_sampling; posing motions: benchmark.motion_posing)
 def ground_truth_at(
     body,
     motions: Sequence,
@@ -607,26 +393,6 @@ def make_landmarks(
     positions = positions * mask[..., None, None]
     return Landmarks(positions=positions, timestamps=torch.as_tensor(timestamps), frame_mask=mask)
 
-
-def farthest_point_indices(points: torch.Tensor, count: int) -> torch.Tensor:
-    """Greedy farthest-point subset of (P, 3) points: (count,) long indices.
-
-    Starts at the point farthest from the centroid; each next point maximises its distance to
-    the points already chosen (ties: the lowest index). Deterministic.
-    """
-    if points.dim() != 2 or points.shape[-1] != 3:
-        raise ValueError(f"farthest_point_indices: points must be (P, 3), got {tuple(points.shape)}")
-    P = points.shape[0]
-    if not 1 <= count <= P:
-        raise ValueError(f"farthest_point_indices: count must be in [1, {P}], got {count}")
-    pts = points.to(torch.float64)
-    chosen = torch.empty(count, dtype=torch.long, device=points.device)
-    chosen[0] = torch.argmax((pts - pts.mean(0)).norm(dim=-1))
-    dist = (pts - pts[chosen[0]]).norm(dim=-1)
-    for i in range(1, count):
-        chosen[i] = torch.argmax(dist)
-        dist = torch.minimum(dist, (pts - pts[chosen[i]]).norm(dim=-1))
-    return chosen
 
 
 def virtual_marker_indices(body, count: int = DEFAULT_NUM_MARKERS, shape: torch.Tensor | None = None) -> torch.Tensor:

@@ -81,7 +81,7 @@ def ground_truth_pose(body, motions, timestamps):
     import roma
     import torch
 
-    from benchmark.observations import _resample_stack, _stack_shapes
+    from benchmark.motion_posing import _resample_stack, _stack_shapes
 
     ts = torch.as_tensor(timestamps, dtype=torch.float64).cpu()
     poses, trans = _resample_stack(motions, ts, torch.ones(ts.shape, dtype=torch.bool))

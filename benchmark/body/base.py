@@ -110,7 +110,7 @@ class BodyModel(torch.nn.Module):
             return None
         cache = self.__dict__.setdefault("_loss_subsets", {})
         if count not in cache:
-            from benchmark.observations import farthest_point_indices
+            from benchmark.surface_sampling import farthest_point_indices
 
             with torch.no_grad():
                 rest = self.prepare(self.default_shape(1).to(self.faces.device))
