@@ -21,632 +21,74 @@ addition: the mean over all frames of all sequences is ``total sum / total frame
 is the one place that converts to reported units (``chamfer_m`` -> ``chamfer_mm``).
 """
 
-from __future__ import annotations
-
-import copy
-import hashlib
-import itertools
-import json
-import logging
-import math
-import os
-import re
-import statistics
-import tempfile
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
-
-log = logging.getLogger(__name__)
-
-# Keys of a table spec that do not change any unit's result (presentation, or the grid as a
-# whole: a unit's own cell is part of its spec). Every other key is a rule and enters the hash.
-NON_RULE_KEYS = frozenset({"name", "title", "paper", "grid", "description", "protocol_version", "headline_metric",
-                           "default_priors"})
-# Keys of a profile that are not sizes.
-NON_SIZE_PROFILE_KEYS = frozenset({"name", "description"})
-# Reported-unit suffix -> (SI suffix used in the unit results' sums, factor SI -> reported).
-UNIT_CONVERSIONS = {"_mm": ("_m", 1e3), "_cm": ("_m", 1e2), "_deg": ("_rad", 180.0 / math.pi)}
-RESULT_KEYS = ("unit_id", "spec_hash", "prior", "cell", "sequence_ids", "fingerprint", "per_sequence",
-               "timings", "device", "na_reason")
-TABLE_FORMAT_VERSION = 1
-STD_DEFINITION = "population standard deviation (ddof=0) over sequences of the per-sequence means"
-_SAFE = re.compile(r"[^A-Za-z0-9._=-]+")
-
-
-# --------------------------------------------------------------------------------------------
-# Canonical JSON, hashes, atomic files
-# --------------------------------------------------------------------------------------------
-
-def canonical_json(obj: Any) -> str:
-    """Deterministic JSON text: sorted keys, no whitespace, no NaN/inf. Raises TypeError for
-    values JSON cannot represent (numpy scalars, tensors): convert them to int/float/str first."""
-
-    def _reject(o):
-        raise TypeError(f"{type(o).__name__} value {o!r} is not JSON-serialisable; convert it to int/float/str/list/dict")
-
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False, default=_reject)
-
-
-def sha256_json(obj: Any) -> str:
-    """sha256 hex digest of :func:`canonical_json` of ``obj``."""
-    return hashlib.sha256(canonical_json(obj).encode("utf-8")).hexdigest()
-
-
-def derive_seed(table_seed: int, table: str, prior: str, cell: Mapping, batch_index: int) -> int:
-    """Seed of one work unit, in [0, 2**32): a stable hash (sha256, not Python's salted ``hash()``)
-    of the table run's seed, the table name, the prior name, the cell and the batch index. Usable
-    by ``torch.Generator.manual_seed``, ``numpy.random.default_rng`` and ``random.seed`` alike."""
-    digest = hashlib.sha256(canonical_json([int(table_seed), table, prior, dict(cell), int(batch_index)]).encode()).digest()
-    return int.from_bytes(digest[:4], "big")
-
-
-def _umask() -> int:
-    """The process umask (read by setting and restoring it; there is no getter)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to ``path`` atomically: a temp file in the same folder, fsync, ``os.replace``.
-    A reader sees the old file or the new one, never a half-written one; on error the old file is
-    untouched and the temp file is removed. The file gets the mode a plain ``open()`` would give
-    (0666 minus the umask: 0644 by default), not mkstemp's private 0600."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        try:
-            os.fchmod(fd, 0o666 & ~_umask())
-        except (AttributeError, OSError):  # no fchmod (Windows): keep mkstemp's mode
-            pass
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
-            # a full disk or a quota says nothing about which file: name it
-            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
-        raise
-    _fsync_dir(path.parent)
-    return path
-
-
-def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
-    """:func:`atomic_write_text` of ``obj`` as indented JSON (sorted keys; NaN/inf rejected)."""
-    text = json.dumps(obj, indent=1, sort_keys=True, ensure_ascii=False, allow_nan=False) + "\n"
-    return atomic_write_text(path, text)
-
-
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:  # not supported (Windows): the rename is still atomic
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-# --------------------------------------------------------------------------------------------
-# Table spec helpers
-# --------------------------------------------------------------------------------------------
-
-def spec_source(table_spec: Mapping) -> str:
-    """Where a table spec comes from, for error messages."""
-    return str(table_spec.get("_source") or f"benchmark/tables/{table_spec.get('name', '<unnamed>')}.yaml")
-
-
-def _spec_field(table_spec: Mapping, key: str):
-    if key not in table_spec:
-        raise ValueError(f"{spec_source(table_spec)}: field {key!r} is missing; add it (see benchmark/tables/table1.yaml)")
-    return table_spec[key]
-
-
-def grid_cells(table_spec: Mapping) -> list[dict]:
-    """Every cell of the spec's ``grid`` in grid order: the product of the value lists, the first
-    key varying slowest (table1: points=100/fps=5, points=100/fps=10, points=1000/fps=5, ...)."""
-    grid = _spec_field(table_spec, "grid")
-    if not isinstance(grid, Mapping) or not grid:
-        raise ValueError(f"{spec_source(table_spec)}: field 'grid' must map each axis to a list of values, got {grid!r}")
-    for key, values in grid.items():
-        if not isinstance(values, list) or not values:
-            raise ValueError(f"{spec_source(table_spec)}: grid axis {key!r} must be a non-empty list, got {values!r}")
-        if len(set(map(canonical_json, values))) != len(values):
-            raise ValueError(f"{spec_source(table_spec)}: grid axis {key!r} repeats a value: {values!r}")
-    keys = list(grid)
-    return [dict(zip(keys, combo)) for combo in itertools.product(*(grid[k] for k in keys))]
-
-
-def table_rules(table_spec: Mapping) -> dict:
-    """The rules of a table (everything that changes a unit's result): the spec without its
-    presentation keys (:data:`NON_RULE_KEYS`); metrics reduced to their names."""
-    rules = copy.deepcopy({k: v for k, v in table_spec.items() if k not in NON_RULE_KEYS and not k.startswith("_")})
-    if "metrics" in rules:
-        rules["metrics"] = [m["name"] for m in metric_specs(table_spec)]
-    return rules
-
-
-def metric_specs(table_spec: Mapping) -> list[dict]:
-    """The spec's ``metrics`` list, validated: each ``{name, better: lower|higher, description}``."""
-    metrics = _spec_field(table_spec, "metrics")
-    if not isinstance(metrics, list) or not metrics:
-        raise ValueError(f"{spec_source(table_spec)}: field 'metrics' must be a non-empty list")
-    out, seen = [], set()
-    for i, m in enumerate(metrics):
-        if not isinstance(m, Mapping) or not isinstance(m.get("name"), str):
-            raise ValueError(f"{spec_source(table_spec)}: metrics[{i}] must be a mapping with a 'name'")
-        better = m.get("better", "lower")
-        if better not in ("lower", "higher"):
-            raise ValueError(f"{spec_source(table_spec)}: metrics[{i}] ({m['name']}): 'better' must be lower or higher, got {better!r}")
-        if m["name"] in seen:
-            raise ValueError(f"{spec_source(table_spec)}: metric {m['name']!r} is listed twice")
-        seen.add(m["name"])
-        out.append({"name": m["name"], "better": better, "description": m.get("description", "")})
-    return out
-
-
-def si_metric(name: str) -> tuple[str, float]:
-    """The SI sum key and the SI -> reported factor of a reported metric name
-    (``chamfer_mm`` -> ``("chamfer_m", 1000.0)``); a name without a known unit suffix is its own
-    SI key (factor 1)."""
-    for suffix, (si_suffix, factor) in UNIT_CONVERSIONS.items():
-        if name.endswith(suffix):
-            return name[: -len(suffix)] + si_suffix, factor
-    return name, 1.0
-
-
-def profile_sizes(profile: Mapping) -> dict:
-    """A profile's sizes (everything but its name and description)."""
-    return {k: v for k, v in profile.items() if k not in NON_SIZE_PROFILE_KEYS}
-
-
-# --------------------------------------------------------------------------------------------
-# Work units
-# --------------------------------------------------------------------------------------------
-
-def _safe(text: str) -> str:
-    return _SAFE.sub("-", str(text)).strip("-") or "x"
-
-
-def make_unit_id(table: str, prior: str, cell: Mapping, batch_index: int) -> str:
-    """Readable, filesystem-safe id: ``table1__vposer-slerp__points=100_fps=5__b000``."""
-    cell_part = "_".join(f"{_safe(k)}={_safe(v)}" for k, v in cell.items())
-    return f"{_safe(table)}__{_safe(prior)}__{cell_part}__b{batch_index:03d}"
-
-
-@dataclass(frozen=True, eq=True)
-class WorkUnit:
-    """One prior x one grid cell x one batch of sequences.
-
-    ``spec`` holds everything that determines the result (table name, protocol version, the
-    table's rules, profile sizes, the prior's identity, the cell, the sequence ids, the seed);
-    ``spec_hash`` is the sha256 of its canonical JSON. A stored result is "done" for this unit
-    when its file exists and its ``spec_hash`` matches.
-    """
-
-    table: str
-    prior: str
-    cell: dict
-    sequence_ids: list
-    batch_index: int
-    seed: int
-    profile: str
-    device: str
-    spec: dict = field(repr=False)
-    spec_hash: str = ""
-
-    __hash__ = None  # holds dicts and lists: not hashable; use unit_id as a key
-
-    @property
-    def unit_id(self) -> str:
-        return make_unit_id(self.table, self.prior, self.cell, self.batch_index)
-
-    @property
-    def cell_key(self) -> str:
-        return canonical_json(self.cell)
-
-
-def plan_units(
-    table_spec: Mapping,
-    profile: Mapping,
-    priors: Sequence[str],
-    sequence_ids: Sequence[str],
-    seed: int,
-    device: str,
-    prior_info: Mapping[str, Mapping],
-    data_hashes: Mapping[str, str] | None = None,
-) -> list[WorkUnit]:
-    """Split a table run into work units: every prior x every cell x every batch.
-
-    table_spec: a table spec (``catalog.load_table_spec``); never mutated.
-    profile: a profile dict with its ``name`` (``catalog.get_profile``); ``batch_sequences`` sets
-        the batch size.
-    priors: prior names, in the order the table lists them.
-    sequence_ids: the test sequences (already chosen by the profile), split in this order into
-        batches of ``profile["batch_sequences"]``.
-    seed: the table run's seed; each unit's seed is :func:`derive_seed` of it.
-    prior_info: for every prior, a JSON-serialisable dict of what identifies its model (size,
-        weights sha256...); it enters the spec hash so new weights invalidate stored results.
-        Pass ``{}`` for a prior with nothing to identify.
-    data_hashes: sequence id -> content hash of the motion data a unit reads for it
-        (:func:`benchmark.protocols.table_run.motion_sha256`). When given, each unit's spec holds
-        ``"data": [hash per sequence of the batch]``, so a sequence whose file was replaced by
-        another motion under the same name invalidates the stored result.
-
-    Returns units in prior-major, then grid, then batch order.
-    """
-    src = spec_source(table_spec)
-    table = _spec_field(table_spec, "name")
-    protocol_version = _spec_field(table_spec, "protocol_version")
-    cells = grid_cells(table_spec)
-    rules = table_rules(table_spec)
-    metric_specs(table_spec)  # validate early
-    if "name" not in profile:
-        raise ValueError("profile has no 'name': pass catalog.get_profile(NAME), which adds it")
-    batch = profile.get("batch_sequences")
-    if not isinstance(batch, int) or isinstance(batch, bool) or batch < 1:
-        raise ValueError(f"profile {profile['name']!r}: 'batch_sequences' must be a positive integer, got {batch!r} (benchmark/profiles.yaml)")
-    if not isinstance(seed, int) or isinstance(seed, bool):
-        raise ValueError(f"seed must be an int, got {seed!r}")
-    priors = list(priors)
-    if not priors:
-        raise ValueError(f"{src}: no priors to run")
-    if len(set(priors)) != len(priors):
-        raise ValueError(f"priors listed twice: {priors!r}")
-    missing = [p for p in priors if p not in prior_info]
-    if missing:
-        raise ValueError(f"prior_info has no entry for {missing!r}; pass {{}} for a prior with no weights to identify")
-    ids = [str(s) for s in sequence_ids]
-    if not ids:
-        raise ValueError(f"{src}: no sequences to run (profile {profile['name']!r})")
-    if len(set(ids)) != len(ids):
-        dup = sorted({s for s in ids if ids.count(s) > 1})
-        raise ValueError(f"sequence ids repeat: {dup[:5]!r}")
-    if data_hashes is not None:
-        lost = [s for s in ids if not isinstance(data_hashes.get(s), str)]
-        if lost:
-            raise ValueError(f"data_hashes has no content hash for sequence(s) {lost[:5]!r}")
-    batches = [ids[i : i + batch] for i in range(0, len(ids), batch)]
-    sizes = profile_sizes(profile)
-
-    units: list[WorkUnit] = []
-    for prior in priors:
-        prior_spec = {"name": prior, **dict(prior_info[prior])}
-        for cell in cells:
-            for b, batch_ids in enumerate(batches):
-                unit_seed = derive_seed(seed, table, prior, cell, b)
-                spec = {
-                    "table": table,
-                    "protocol_version": protocol_version,
-                    "rules": rules,
-                    "profile": sizes,
-                    "prior": prior_spec,
-                    "cell": dict(cell),
-                    "sequence_ids": list(batch_ids),
-                    "seed": unit_seed,
-                }
-                if data_hashes is not None:
-                    spec["data"] = [data_hashes[s] for s in batch_ids]
-                units.append(WorkUnit(table=table, prior=prior, cell=dict(cell), sequence_ids=list(batch_ids),
-                                      batch_index=b, seed=unit_seed, profile=profile["name"], device=device,
-                                      spec=spec, spec_hash=sha256_json(spec)))
-    seen: dict[str, WorkUnit] = {}
-    for u in units:
-        if u.unit_id in seen:
-            raise ValueError(f"two work units share the id {u.unit_id!r} (prior names {seen[u.unit_id].prior!r} and "
-                             f"{u.prior!r} differ only in characters a file name cannot hold); rename one")
-        seen[u.unit_id] = u
-    return units
-
-
-# --------------------------------------------------------------------------------------------
-# Unit results
-# --------------------------------------------------------------------------------------------
-
-def _finite_number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def validate_unit_result(result: Any, unit: WorkUnit | None = None, source: str = "unit result") -> dict:
-    """Check a unit-result dict (see the module docstring); return it unchanged or raise ValueError
-    naming ``source`` and the field. With ``unit``, also check it belongs to that unit (id, spec
-    hash, and exactly its sequences)."""
-    if not isinstance(result, Mapping):
-        raise ValueError(f"{source}: expected a dict, got {type(result).__name__}")
-    missing = [k for k in RESULT_KEYS if k not in result]
-    if missing:
-        raise ValueError(f"{source}: missing field(s) {missing}; a unit result has {list(RESULT_KEYS)}")
-    uid = result["unit_id"]
-    if unit is not None:
-        if uid != unit.unit_id:
-            raise ValueError(f"{source}: unit_id {uid!r} does not match the unit {unit.unit_id!r}")
-        if result["spec_hash"] != unit.spec_hash:
-            raise ValueError(f"{source}: spec_hash {result['spec_hash']!r} does not match the unit's {unit.spec_hash!r}; "
-                             "return unit.spec_hash unchanged")
-        if result["prior"] != unit.prior or dict(result["cell"]) != unit.cell:
-            raise ValueError(f"{source}: prior/cell {result['prior']!r} {result['cell']!r} do not match the unit's "
-                             f"{unit.prior!r} {unit.cell!r}")
-    if not isinstance(result["fingerprint"], str) or not result["fingerprint"]:
-        raise ValueError(f"{source}: 'fingerprint' must be a non-empty string (a hash of the degraded observation)")
-    timings = result["timings"]
-    if not isinstance(timings, Mapping) or any(not _finite_number(timings.get(k)) or timings[k] < 0 for k in ("fit_s", "eval_s")):
-        raise ValueError(f"{source}: 'timings' must hold finite, non-negative 'fit_s' and 'eval_s' seconds, got {timings!r}")
-    na = result["na_reason"]
-    rows = result["per_sequence"]
-    if na is not None:
-        if not isinstance(na, str) or not na.strip():
-            raise ValueError(f"{source}: 'na_reason' must be None or a non-empty string, got {na!r}")
-        if rows:
-            raise ValueError(f"{source}: a unit with na_reason {na!r} must have no per_sequence rows")
-        return result
-    if not isinstance(rows, list) or not rows:
-        raise ValueError(f"{source}: 'per_sequence' must be a non-empty list (or set na_reason)")
-    ids = []
-    for i, row in enumerate(rows):
-        where = f"{source}: per_sequence[{i}]"
-        if not isinstance(row, Mapping) or not isinstance(row.get("id"), str):
-            raise ValueError(f"{where}: needs a string 'id'")
-        frames = row.get("frames")
-        if not isinstance(frames, int) or isinstance(frames, bool) or frames < 1:
-            raise ValueError(f"{where} ({row['id']}): 'frames' must be a positive int, got {frames!r}")
-        sums = row.get("sums")
-        if not isinstance(sums, Mapping) or not sums:
-            raise ValueError(f"{where} ({row['id']}): 'sums' must be a non-empty dict of metric sums in SI units")
-        for k, v in sums.items():
-            if not _finite_number(v):
-                raise ValueError(f"{where} ({row['id']}): sums[{k!r}] = {v!r} is not a finite number")
-        ids.append(row["id"])
-    if len(set(ids)) != len(ids):
-        raise ValueError(f"{source}: per_sequence repeats a sequence id")
-    expected = unit.sequence_ids if unit is not None else result["sequence_ids"]
-    if sorted(ids) != sorted(expected):
-        extra, lost = sorted(set(ids) - set(expected)), sorted(set(expected) - set(ids))
-        raise ValueError(f"{source}: per_sequence ids differ from the unit's sequences (extra {extra[:5]}, missing {lost[:5]})")
-    return result
-
-
-CHECKSUM_KEY = "checksum"
-
-
-def unit_checksum(record: Mapping) -> str:
-    """sha256 of a stored unit record's canonical JSON, without its own ``checksum`` field. The
-    runner stores it in the file and checks it before reuse: a file edited by hand (or damaged)
-    no longer matches and is moved aside instead of trusted."""
-    return sha256_json({k: v for k, v in record.items() if k != CHECKSUM_KEY})
-
-
-def with_checksum(record: Mapping) -> dict:
-    """``record`` plus its ``checksum`` field (:func:`unit_checksum`)."""
-    out = {k: v for k, v in record.items() if k != CHECKSUM_KEY}
-    out[CHECKSUM_KEY] = unit_checksum(out)
-    return out
-
-
-def checksum_problem(record: Mapping) -> str | None:
-    """Why a stored record's checksum does not vouch for it, or None when it matches."""
-    stored = record.get(CHECKSUM_KEY)
-    if not isinstance(stored, str):
-        return "no checksum (written by an older version, or edited)"
-    if stored != unit_checksum(record):
-        return "contents do not match the file's own checksum (edited or damaged)"
-    return None
-
-
-def unit_path(out_dir: str | os.PathLike, unit_id: str) -> Path:
-    """Where a unit's result lives: ``<out_dir>/units/<unit_id>.json``."""
-    return Path(out_dir) / "units" / f"{unit_id}.json"
-
-
-def load_unit_results(out_dir: str | os.PathLike, units: Iterable[WorkUnit]) -> list[dict]:
-    """The stored results of ``units`` that are done (file exists, spec hash matches, valid, its
-    own checksum matches), in plan order. Missing or stale ones are skipped (the derived cell then says it is incomplete)."""
-    found = []
-    for unit in units:
-        path = unit_path(out_dir, unit.unit_id)
-        if not path.exists():
-            continue
-        try:
-            result = json.loads(path.read_text(encoding="utf-8"))
-            validate_unit_result(result, unit, source=str(path))
-            problem = checksum_problem(result)
-            if problem:
-                raise ValueError(problem)
-        except (ValueError, OSError) as exc:
-            log.warning("skipping %s: %s", path, exc)
-            continue
-        found.append(result)
-    return found
-
-
-# --------------------------------------------------------------------------------------------
-# Derivation: unit results -> the public table
-# --------------------------------------------------------------------------------------------
-
-_META_KEYS = {"units", "profile", "seed", "device", "priors", "provenance", "data", "body", "sequences", "wall_s",
-              "resume"}
-_META_NEEDS = {
-    "units": "the planned WorkUnit list from plan_units (it says how many units each cell needs)",
-    "profile": "the profile dict with its name (catalog.get_profile)",
-    "seed": "the table run's seed",
-    "device": "the device the run used",
-}
-
-
-def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Mapping) -> dict:
-    """The public table JSON, derived from per-sequence unit results.
-
-    table_spec: the table spec the units were planned from.
-    unit_results: unit-result dicts (from ``run_units`` or :func:`load_unit_results`); results of
-        units not in the plan are ignored; a result whose spec hash differs from its planned unit
-        is an error.
-    meta: ``units`` (the planned :class:`WorkUnit` list, required: it says how many units each cell
-        needs), ``profile`` (the profile dict with its name), ``seed``, ``device`` (all required);
-        optional ``priors`` (row order, a list or a dict keyed by name; default: order of first
-        appearance in ``units``), ``provenance`` (default:
-        :func:`benchmark.provenance.collect_provenance`), ``data`` (what the test data was, e.g.
-        ``"synthetic:test"``), ``body`` (the body model's name), ``sequences`` (the sequence ids
-        run), ``wall_s`` (the run's wall time), ``resume`` (what the runner did with stored unit
-        files: counts of reused / recomputed / moved aside; kept in ``provenance["resume"]``). The table also records each prior's identity as
-        planned (``prior_info``: name, size, weights hash...).
-
-    Each cell holds its grid coordinates, then per metric (unit in the name): the mean over all
-    output frames of all sequences (``total sum / total frames``, in reported units) and
-    ``<metric>_std`` (:data:`STD_DEFINITION`), plus ``sequences``, ``frames``, ``units``,
-    ``fingerprint`` (sha256 of the sorted unit fingerprints). A cell missing any unit has
-    ``na_reason: "incomplete: k of n units"`` and no metrics; a cell whose units report n/a has
-    their reason. A metric that some sequences lack is ``null`` with its reason in ``metric_na``.
-    """
-    unknown = set(meta) - _META_KEYS
-    if unknown:
-        raise ValueError(f"derive_table: unknown meta key(s) {sorted(unknown)}; known: {sorted(_META_KEYS)}")
-    for key, what in _META_NEEDS.items():
-        if key not in meta:
-            raise ValueError(f"derive_table: meta needs {key!r}: {what}")
-    units: list[WorkUnit] = list(meta["units"])
-    profile = meta["profile"]
-    if not isinstance(profile, Mapping) or "name" not in profile:
-        raise ValueError("derive_table: meta['profile'] must be the profile dict with its 'name' (catalog.get_profile)")
-    metrics = metric_specs(table_spec)
-    cells = grid_cells(table_spec)
-    grid_keys = list(_spec_field(table_spec, "grid"))
-    clash = [m["name"] for m in metrics if m["name"] in grid_keys]
-    if clash:
-        raise ValueError(f"{spec_source(table_spec)}: metric name(s) {clash} collide with grid axes")
-
-    planned = {u.unit_id: u for u in units}
-    results: dict[str, Mapping] = {}
-    for r in unit_results:
-        uid = r.get("unit_id") if isinstance(r, Mapping) else None
-        unit = planned.get(uid)
-        if unit is None:
-            log.debug("derive_table: ignoring result %r (not in this plan)", uid)
-            continue
-        if r.get("spec_hash") != unit.spec_hash:
-            raise ValueError(f"derive_table: result for {uid} has spec_hash {r.get('spec_hash')!r}, the plan says "
-                             f"{unit.spec_hash!r}: it was computed under other rules; rerun it")
-        results[uid] = validate_unit_result(r, unit, source=f"result {uid}")
-
-    priors = list(meta.get("priors") or dict.fromkeys(u.prior for u in units))
-    groups: dict[tuple[str, str], list[WorkUnit]] = {}
-    for u in units:
-        groups.setdefault((u.prior, u.cell_key), []).append(u)
-
-    rows = []
-    for prior in priors:
-        row_cells = []
-        for cell in cells:
-            group = groups.get((prior, canonical_json(cell)), [])
-            done = [results[u.unit_id] for u in group if u.unit_id in results]
-            row_cells.append(_derive_cell(cell, len(group), done, metrics))
-        rows.append({"prior": prior, "cells": row_cells})
-
-    if "provenance" in meta and meta["provenance"] is not None:
-        provenance = dict(meta["provenance"])
-    else:
-        from benchmark.provenance import collect_provenance
-
-        provenance = collect_provenance(device=meta["device"])
-    done_results = list(results.values())
-    provenance["timings"] = {
-        "fit_s": math.fsum(r["timings"]["fit_s"] for r in done_results),
-        "eval_s": math.fsum(r["timings"]["eval_s"] for r in done_results),
-        "units": len(done_results),
-    }
-    if meta.get("wall_s") is not None:
-        provenance["timings"]["wall_s"] = float(meta["wall_s"])
-    if meta.get("resume") is not None:
-        provenance["resume"] = dict(meta["resume"])
-
-    all_cells = [c for row in rows for c in row["cells"]]
-    table = {
-        "format_version": TABLE_FORMAT_VERSION,
-        "table": table_spec["name"],
-        "title": table_spec.get("title", table_spec["name"]),
-        "protocol": table_spec.get("protocol"),
-        "protocol_version": table_spec["protocol_version"],
-        "profile": profile["name"],
-        "profile_sizes": profile_sizes(profile),
-        "profile_description": profile.get("description", ""),
-        "comparable_to_full": profile["name"] == "full",
-        "seed": meta["seed"],
-        "device": meta["device"],
-        "unit_devices": sorted({r["device"] for r in done_results}),
-        "data": meta.get("data"),
-        "body": meta.get("body"),
-        "sequences": list(meta["sequences"]) if meta.get("sequences") is not None else None,
-        "prior_info": {p: next((u.spec["prior"] for u in units if u.prior == p), None) for p in priors},
-        "provenance": provenance,
-        "spec": table_rules(table_spec),
-        "grid": {k: list(v) for k, v in table_spec["grid"].items()},
-        "metrics": metrics,
-        "headline_metric": table_spec.get("headline_metric", metrics[0]["name"]),
-        "std_definition": STD_DEFINITION,
-        "counts": {
-            "units_planned": len(units),
-            "units_done": len(done_results),
-            "cells": len(all_cells),
-            "cells_na": sum(1 for c in all_cells if c.get("na_reason")),
-        },
-        "rows": rows,
-    }
-    if table_spec.get("paper"):
-        table["paper"] = copy.deepcopy(table_spec["paper"])
-    return table
-
-
-def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list[dict]) -> dict:
-    out: dict[str, Any] = dict(cell)
-    out["units"] = n_units
-    if n_units == 0:
-        out["na_reason"] = "not run: no work units were planned for this cell"
-        return out
-    if len(done) < n_units:
-        out["na_reason"] = f"incomplete: {len(done)} of {n_units} units"
-        return out
-    out["fingerprint"] = hashlib.sha256(canonical_json(sorted(r["fingerprint"] for r in done)).encode()).hexdigest()
-    reasons = list(dict.fromkeys(r["na_reason"] for r in done if r["na_reason"] is not None))
-    if reasons:
-        out["na_reason"] = "; ".join(reasons)
-        return out
-    seqs = [row for r in done for row in r["per_sequence"]]
-    ids = [row["id"] for row in seqs]
-    if len(set(ids)) != len(ids):
-        raise ValueError(f"cell {dict(cell)}: a sequence appears in two units: {sorted({i for i in ids if ids.count(i) > 1})[:5]}")
-    frames = [row["frames"] for row in seqs]
-    metric_na = {}
-    for m in metrics:
-        name = m["name"]
-        key, factor = si_metric(name)
-        have = [row for row in seqs if key in row["sums"]]
-        if len(have) < len(seqs):
-            out[name] = None
-            out[f"{name}_std"] = None
-            given = list(dict.fromkeys(row["na"][key] for row in seqs
-                                       if key not in row["sums"] and key in (row.get("na") or {})))
-            metric_na[name] = ("; ".join(given) if given and not have
-                               else f"not reported: no sequence has {key!r}" if not have
-                               else f"incomplete: reported for {len(have)} of {len(seqs)} sequences")
-            continue
-        total = math.fsum(row["sums"][key] for row in seqs)
-        out[name] = factor * total / sum(frames)
-        per_seq = [factor * row["sums"][key] / row["frames"] for row in seqs]
-        out[f"{name}_std"] = statistics.pstdev(per_seq) if len(per_seq) > 1 else 0.0
-    out["sequences"] = len(seqs)
-    out["frames"] = sum(frames)
-    out["fit_s"] = math.fsum(r["timings"]["fit_s"] for r in done)
-    out["eval_s"] = math.fsum(r["timings"]["eval_s"] for r in done)
-    if metric_na:
-        out["metric_na"] = metric_na
-    return out
-
+# The code lives in benchmark.work_units (hashing, atomic files, spec helpers, planning, unit results)
+# and benchmark.table_derive (the table); this module re-exports their names.
+
+import os as _os
+
+from benchmark.table_derive import (
+    STD_DEFINITION,
+    derive_table,
+)
+from benchmark.work_units import (
+    CHECKSUM_KEY,
+    NON_RULE_KEYS,
+    NON_SIZE_PROFILE_KEYS,
+    RESULT_KEYS,
+    TABLE_FORMAT_VERSION,
+    UNIT_CONVERSIONS,
+    WorkUnit,
+    atomic_write_json,
+    atomic_write_text,
+    canonical_json,
+    checksum_problem,
+    derive_seed,
+    grid_cells,
+    load_unit_results,
+    make_unit_id,
+    metric_specs,
+    plan_units,
+    profile_sizes,
+    sha256_json,
+    si_metric,
+    spec_source,
+    table_rules,
+    unit_checksum,
+    unit_path,
+    validate_unit_result,
+    with_checksum,
+)
+
+# Kept as an attribute: callers and tests patch results.os.fsync (the one shared os module).
+os = _os
+
+__all__ = [
+    "CHECKSUM_KEY",
+    "NON_RULE_KEYS",
+    "NON_SIZE_PROFILE_KEYS",
+    "RESULT_KEYS",
+    "STD_DEFINITION",
+    "TABLE_FORMAT_VERSION",
+    "UNIT_CONVERSIONS",
+    "WorkUnit",
+    "atomic_write_json",
+    "atomic_write_text",
+    "canonical_json",
+    "checksum_problem",
+    "derive_seed",
+    "derive_table",
+    "grid_cells",
+    "load_unit_results",
+    "make_unit_id",
+    "metric_specs",
+    "plan_units",
+    "profile_sizes",
+    "sha256_json",
+    "si_metric",
+    "spec_source",
+    "table_rules",
+    "unit_checksum",
+    "unit_path",
+    "validate_unit_result",
+    "with_checksum",
+]
