@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.loaders.bvh import cmu_skeleton, write_bvh
+from benchmark.loaders.bvh_format import cmu_skeleton, write_bvh
 from benchmark.loaders.convert import convert, detect_format
 from benchmark.motion import Motion
 
