@@ -5,33 +5,65 @@ interpolation to output timestamps and the schedule, so every prior is judged by
 An adapter owns only its model: how latents start, how they decode to body parameters at given
 timestamps, and its prior term.
 
-Minimal example (a complete, registrable adapter)::
+Adding a prior: ``docs/adding-a-prior.md`` walks from an empty folder to
+``python -m benchmark check-prior NAME`` passing and a row in
+``python -m benchmark run table1 --profile smoke --prior NAME``, with a complete example package in
+the layout every learned prior here uses (``priors/vposer/`` is the nearest real one)::
+
+    my-prior/
+        pyproject.toml      registers the prior (entry-point group "benchmark.priors")
+        my_prior/
+            __init__.py     the method in its docstring; exports the adapter
+            model.py        the networks at any size, pure torch, no I/O
+            checkpoint.py   the checkpoint format(s), read strictly
+            adapter.py      the PriorAdapter
+            train.py        the training recipe
+
+The contract, in short. An adapter *declares* ``name`` (registry name), ``window`` (a
+:class:`WindowSpec`: "per-frame", "fixed" or "continuous"), ``encodes_translation`` and
+``encodes_root_orientation`` (False: the protocol fits them, free, on top of ``decode``),
+``heading_normalised`` (True: the protocol frees one heading per window), ``joints``,
+``shape_conditioned``, ``has_encoder``; it is constructed as ``cls(size=, weights=, device=)`` and
+*provides* ``init_latents`` (a dict of batch-first tensors, random only through ``generator``),
+``decode`` (latents -> :class:`Decoded` at the requested timestamps, differentiable) and
+``prior_term`` ((B,) penalty). Optional: ``encode_motion`` (with ``has_encoder = True``),
+``export_decoder``, ``paper_network``, ``train_embedded``.
+
+Minimal example: a complete adapter in one module that passes ``check-prior`` (free per-frame
+poses pulled towards the T-pose; ``priors/no_prior.py`` is the same with no pull)::
 
     import torch
-    from priors.base import PriorAdapter, Decoded, WindowSpec
+    from benchmark.rotations import matrix_to_sixd, sixd_to_matrix
+    from priors.base import Decoded, FitBatch, PriorAdapter, WindowSpec
 
-    class MeanPose(PriorAdapter):
-        name = "mean-pose"
-        paper = "example: a one-latent prior that only scales a fixed pose"
-        window = WindowSpec(kind="per-frame")
-        encodes_translation = False
-        encodes_root_orientation = False
+    class TPosePull(PriorAdapter):
+        name = "tpose-pull"
+        paper = "example: per-frame poses with a quadratic pull towards the T-pose"
+        window = WindowSpec(kind="per-frame")  # one latent per observed frame; the protocol SLERPs
+        encodes_translation = False  # the protocol fits translation ...
+        encodes_root_orientation = False  # ... and root orientation
+        heading_normalised = False
 
-        def init_latents(self, batch, generator):
-            return {"z": torch.randn(batch.batch_size, batch.num_observed, 1, generator=generator)}
+        def __init__(self, size="embedded", weights=None, device="cpu"):
+            super().__init__(size=size, weights=weights, device=device)
+            self.register_buffer("eye6", matrix_to_sixd(torch.eye(3), layout="interleaved"))
+
+        def init_latents(self, batch: FitBatch, generator: torch.Generator):
+            noise = 0.01 * torch.randn(batch.batch_size, batch.num_observed, 21, 6, generator=generator)
+            return {"pose": self.eye6 + noise.to(self.eye6.device)}
 
         def decode(self, latents, timestamps, shape=None):
-            B, T = timestamps.shape
-            rot = torch.eye(3).expand(B, T, 22, 3, 3).clone()
-            return Decoded(rotations=rot)
+            body = sixd_to_matrix(latents["pose"], layout="interleaved")  # (B, n, 21, 3, 3)
+            root = torch.eye(3, dtype=body.dtype, device=body.device).expand(*body.shape[:2], 1, 3, 3)
+            return Decoded(rotations=torch.cat([root, body], dim=2))  # identity root, trans=None
 
         def prior_term(self, latents):
-            return latents["z"].square().sum(-1).mean(-1)
+            return (latents["pose"] - self.eye6).square().sum((-1, -2)).mean(-1)  # (B,)
 
-and in your package's ``pyproject.toml``::
+and in your package's ``pyproject.toml``, then ``pip install -e .``::
 
     [project.entry-points."benchmark.priors"]
-    mean-pose = "my_package.my_module:MeanPose"
+    tpose-pull = "my_package.my_module:TPosePull"
 """
 
 from __future__ import annotations
