@@ -128,6 +128,13 @@ def evaluate(body, output, data: UnitData, device, surface_points: int | None = 
         lambda i: _scan_to_surface_frame(g_flat[i, :n_surf], v_flat[i], faces_t, vertex_faces, knn[i],
                                          d_gv[i, :n_surf]), n_frames))
     surface = 0.5 * (vert_to_scan.double() + scan_to_surface)
+    return _sequence_sums(chamfer, surface, output, data, verts)
+
+
+def _sequence_sums(chamfer: torch.Tensor, surface: torch.Tensor, output, data: UnitData, verts: torch.Tensor) -> list[dict]:
+    """Per-sequence metric sums over the output frames: the two Chamfer columns (``(B*T,)`` per
+    frame) and MPJPE of ``output``'s joints against the ground truth."""
+    B, T = verts.shape[:2]
     err = (output.joints.to("cpu") - data.gt_joints.to(verts)).norm(dim=-1).mean(-1)  # (B, T)
     ch, surf = chamfer.view(B, T), surface.view(B, T)
     return [
@@ -249,13 +256,7 @@ def evaluate_reference(body, output, data: UnitData, device, surface_points: int
     chamfer = 0.5 * (vert_to_scan + d_gv.mean(1))
     scan_to_surface = scan_to_surface_distance(g_flat[:, :surface_points], v_flat, body.faces.cpu(), d_gv[:, :surface_points])
     surface = 0.5 * (vert_to_scan.double() + scan_to_surface.double())
-    err = (output.joints.to("cpu") - data.gt_joints.to(verts)).norm(dim=-1).mean(-1)  # (B, T)
-    ch, surf = chamfer.view(B, T), surface.view(B, T)
-    return [
-        {"frames": T, "sums": {"chamfer_m": float(ch[b].sum()), "chamfer_surface_m": float(surf[b].sum()),
-                               "mpjpe_m": float(err[b].sum())}}
-        for b in range(B)
-    ]
+    return _sequence_sums(chamfer, surface, output, data, verts)
 
 
 def scan_to_surface_distance(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor,
