@@ -112,6 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     from benchmark.cli_run import add_run_commands
 
     add_run_commands(sub)
+    from benchmark.fit_check import add_fit_check_command
+
+    add_fit_check_command(sub)
     from benchmark.report.cli import add_report_command
 
     add_report_command(sub)

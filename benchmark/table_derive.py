@@ -13,6 +13,7 @@ import math
 import statistics
 from typing import Any, Iterable, Mapping
 
+from benchmark.fit_diagnostics import cell_diagnostics
 from benchmark.work_units import (
     TABLE_FORMAT_VERSION,
     WorkUnit,
@@ -203,6 +204,9 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
         out[f"{name}_std"] = statistics.pstdev(per_seq) if len(per_seq) > 1 else 0.0
     out["sequences"] = len(seqs)
     out["frames"] = sum(frames)
+    diagnostics = cell_diagnostics(seqs)
+    if diagnostics is not None:
+        out["diagnostics"] = diagnostics
     out["fit_s"] = math.fsum(r["timings"]["fit_s"] for r in done)
     out["eval_s"] = math.fsum(r["timings"]["eval_s"] for r in done)
     if metric_na:

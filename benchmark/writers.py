@@ -20,6 +20,7 @@ import os
 from pathlib import Path
 from typing import Mapping, Sequence
 
+from benchmark.fit_diagnostics import BACKWARDS_DEG, CONVERGED_MAX_DECREASE, CONVERGENCE_WINDOW, FLAG, cell_flagged
 from benchmark.results import atomic_write_json, atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -195,7 +196,9 @@ def format_markdown(table: Mapping) -> str:
                     out.append(f"n/a {note(reason)}")
                 else:
                     std = cell.get(f"{name}_std")
-                    out.append(format_number(cell[name], name) + (f" ± {format_number(std, name)}" if std is not None else ""))
+                    flag = f" {FLAG}" if cell_flagged(cell.get("diagnostics")) else ""
+                    out.append(format_number(cell[name], name) + (f" ± {format_number(std, name)}" if std is not None else "")
+                               + flag)
             lines.append(f"| {row['prior']} | " + " | ".join(out) + " |")
         paper = _paper_rows(table, name)
         for prior, numbers in paper:
@@ -205,10 +208,38 @@ def format_markdown(table: Mapping) -> str:
             lines += ["", "Rows in *italics* are the numbers printed in the paper, measured on the paper's own "
                           "data: for reference only, not produced by this run."]
 
+    lines += _diagnostics_section(rows, labels)
     if footnotes:
         lines.append("")
         lines += [f"[^{n}]: {reason}" for reason, n in footnotes.items()]
     return "\n".join(lines) + "\n"
+
+
+def _diagnostics_section(rows: list, labels: list[str]) -> list[str]:
+    """The "Fit diagnostics" Markdown section (:mod:`benchmark.fit_diagnostics`): per prior and
+    cell, backwards fits, unconverged fits and the mean root-orientation error; empty when no cell has them."""
+    if not any(c.get("diagnostics") for row in rows for c in row["cells"]):
+        return []
+    lines = ["", "## Fit diagnostics", "",
+             f"Per cell: backwards fits (mean facing error > {BACKWARDS_DEG:g}°) / unconverged fits (data term still "
+             f"falling by more than {CONVERGED_MAX_DECREASE:.0%} over the last {CONVERGENCE_WINDOW:.0%} of the steps) / "
+             "sequences, then the mean root-orientation error over the output frames. "
+             f"{FLAG} in the tables above marks a cell with a backwards or unconverged fit: its number measures a fit "
+             "failure as much as the prior.", "",
+             "| Prior | " + " | ".join(labels) + " |", "|:--|" + "--:|" * len(labels)]
+    for row in rows:
+        out = []
+        for cell in row["cells"]:
+            d = cell.get("diagnostics")
+            if not d:
+                out.append("–")
+                continue
+            text = f"{d['backwards']}/{d['not_converged']}/{d['sequences']}"
+            if d.get("root_err_deg") is not None:
+                text += f", {d['root_err_deg']:.0f}°"
+            out.append(f"**{text}** {FLAG}" if cell_flagged(d) else text)
+        lines.append(f"| {row['prior']} | " + " | ".join(out) + " |")
+    return lines
 
 
 # --------------------------------------------------------------------------------------------

@@ -242,7 +242,9 @@ def optimise(prior_name: str, parameters, steps: int, lr: float, lr_final_fracti
 def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lambda_prior: float,
         generator: torch.Generator, device, lr_final_fraction: float = 0.1, loss_vertices: int | None = None,
         callback=None, facing: str = "heading8", shape_lr_scale: float = 1.0) -> tuple[FitState, dict]:
-    """Optimise one batch (see module docstring). Returns the state and a log of the losses.
+    """Optimise one batch (see module docstring). Returns the state and a log: ``history`` (the
+    logged steps), ``data_trace`` ((steps, B) the data term of every sequence at every step, mm)
+    and, with ``facing="search"``, the facing search's choices.
 
     ``loss_vertices``: the data term uses a fixed farthest-point subset of that many mesh vertices
     (a profile size, for CPU speed); None uses every vertex. Evaluation always uses every vertex.
@@ -263,11 +265,14 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     else:
         state = init_state(adapter, body, batch, generator, device, data_term=data_term)
 
+    trace = []  # (B,) data term of every step: the convergence diagnostics (benchmark.fit_diagnostics)
+
     def step_loss(step):
         rot, trans = body_parameters(state, batch.timestamps, observed=True)
         rest = body.prepare(state.shape())
         verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices  # (B, n, V, 3)
         data = data_term(verts.flatten(0, 1)).view(B, n).mean(1) * 1000.0
+        trace.append(data.detach())
         prior = adapter.prior_term(state.latents)
         return (data + lambda_prior * prior).sum(), lambda: {"data_mm": float(data.detach().mean()),
                                                               "prior": float(prior.detach().mean())}
@@ -277,7 +282,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         params = [{"params": [p for p in params if p is not state.shape_param]},
                   {"params": [state.shape_param], "lr": lr * shape_lr_scale}]
     history = optimise(adapter.name, params, steps, lr, lr_final_fraction, step_loss, callback=callback)
-    return state, {"history": history, **facing_log}
+    data_trace = torch.stack(trace) if trace else torch.zeros(0, B)
+    return state, {"history": history, "data_trace": data_trace, **facing_log}
 
 
 # How a fit finds the facing direction: "heading8" (protocol v1 of table1): the 8-yaw Chamfer score

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from benchmark.degrade import degrade, fingerprint
+from benchmark.fit_diagnostics import sequence_diagnostics
 from benchmark.observations import make_scans, sample_surface
 from benchmark.protocols.unit_data import UnitData, stable_seed  # noqa: F401  (re-exported)
 from benchmark.protocols.completion import decode_output, fit, observation_batch
@@ -308,7 +309,8 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     t0 = time.perf_counter()
     state, info = fit(adapter, body, batch, steps=int(profile["steps"]), lr=float(obj["lr"]),
                       lambda_prior=float(obj["lambda_prior"]), generator=g, device=device,
-                      loss_vertices=_loss_vertices(profile))
+                      loss_vertices=_loss_vertices(profile), facing=facing_rule(table_spec),
+                      shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)))
     t1 = time.perf_counter()
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
     sp = profile.get("surface_points", "all")
@@ -317,8 +319,11 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
         data = dataclasses.replace(data, gt_joints=torch.zeros_like(output.joints))
     per_seq = evaluate(body, output, data, device, surface_points=None if sp in (None, "all") else int(sp))
     t2 = time.perf_counter()
+    gt_pose = None if no_joints else unit_ground_truth_pose(data_source, unit.sequence_ids, data)
+    diagnostics = sequence_diagnostics(info["data_trace"], rot[:, :, 0], None if gt_pose is None else gt_pose[0][:, :, 0])
     for i, (sid, row) in enumerate(zip(unit.sequence_ids, per_seq)):
         row["id"] = sid
+        row["diagnostics"] = diagnostics[i]
         if no_joints:
             row["sums"].pop("mpjpe_m", None)
             row["na"] = {"mpjpe_m": NO_GT_JOINTS}
@@ -330,23 +335,39 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
         "unit_id": unit.unit_id, "spec_hash": unit.spec_hash, "prior": unit.prior, "cell": dict(cell),
         "sequence_ids": list(unit.sequence_ids), "fingerprint": fp, "per_sequence": per_seq,
         "timings": {"fit_s": t1 - t0, "eval_s": t2 - t1}, "device": str(device), "na_reason": None,
-        "fit_log": info["history"],
+        "fit_log": info["history"], **({"facing_search": {k: info[k] for k in FACING_LOG if k in info}}
+                                       if any(k in info for k in FACING_LOG) else {}),
         # the runner stores it as .npz; captured scans have no ground-truth motion to store beside the fit
-        "arrays": None if no_joints else unit_arrays(unit, data_source, data, batch, rot, trans, state.shape()),
+        "arrays": None if no_joints else unit_arrays(unit, data, batch, rot, trans, state.shape(), gt_pose),
     }
 
 
-def unit_arrays(unit, data_source: CompletionData, data: UnitData, batch, rot, trans, shape) -> dict:
-    """The fitted and ground-truth motion at the output timestamps and a subsample of the
-    observation, for the report's animations (:mod:`benchmark.unit_arrays`)."""
-    from benchmark.unit_arrays import fit_arrays, ground_truth_pose
+FACING_LOG = ("facing_yaw_rad", "facing_scores_mm")  # what the facing search logs (completion.facing_search)
+
+
+def facing_rule(spec: dict) -> str:
+    """How a fit finds the facing direction (``objective.facing``; protocol version 1: ``heading8``)."""
+    return str(spec["objective"].get("facing", "heading8"))
+
+
+def unit_ground_truth_pose(data_source: CompletionData, sequence_ids, data: UnitData):
+    """(rotations (B, T, 22, 3, 3), translation (B, T, 3), shape) of the ground truth at the unit's output timestamps."""
+    from benchmark.unit_arrays import ground_truth_pose
 
     d = data_source.spec["data"]
     start = float(d.get("window_start_s", 0.0))
-    motions = [data_source.motions[sid] for sid in unit.sequence_ids]
+    motions = [data_source.motions[sid] for sid in sequence_ids]
     if start:
         motions = [m.window(float(m.timestamps[0]) + start, m.duration - start) for m in motions]
-    gt_rot, gt_trans, gt_shape = ground_truth_pose(data_source.body, motions, data.scans.timestamps[:, :1] + data.out_t)
+    return ground_truth_pose(data_source.body, motions, data.scans.timestamps[:, :1] + data.out_t)
+
+
+def unit_arrays(unit, data: UnitData, batch, rot, trans, shape, gt_pose) -> dict:
+    """The fitted and ground-truth motion at the output timestamps and a subsample of the
+    observation, for the report's animations (:mod:`benchmark.unit_arrays`)."""
+    from benchmark.unit_arrays import fit_arrays
+
+    gt_rot, gt_trans, gt_shape = gt_pose
     return fit_arrays(unit, data.out_t, rot, trans, shape, gt_rot, gt_trans, gt_shape, batch.timestamps,
                       batch.points, batch.lengths)
 

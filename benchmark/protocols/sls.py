@@ -103,9 +103,11 @@ import torch
 from benchmark.degrade import degrade, fingerprint
 from benchmark.metrics.chamfer import chamfer_loss
 from benchmark.observations import Landmarks, PointCloudSequence, ground_truth_at, sample_surface
-from benchmark.protocols.completion import FitState, apply_free_rigid, body_parameters, init_state, optimise
+from benchmark.fit_diagnostics import sequence_diagnostics
+from benchmark.protocols.completion import FitState, apply_free_rigid, body_parameters, facing_search, init_state, optimise
 from benchmark.protocols.completion_unit import UnitData, evaluate, stable_seed
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from benchmark.unit_arrays import ground_truth_pose
 from priors.base import FitBatch, PriorAdapter
 
 log = logging.getLogger(__name__)
@@ -471,7 +473,13 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
     init_pts = lm if pts is None else torch.cat([pts if cap in (None, "all") else pts[:, :, : int(cap)], lm], dim=2)
     batch = FitBatch(points=init_pts, lengths=torch.full((B, n), init_pts.shape[2], dtype=torch.long, device=device),
                      timestamps=obs_t, window_s=float(anchor_t[:, -1].max()), output_timestamps=anchor_t)
-    state = init_state(adapter, body, batch, generator, device)
+    facing = str(objective.get("facing", "heading8"))
+    if facing == "search":
+        state, _ = facing_search(adapter, body, batch, generator, device, lr, lam)
+    elif facing in ("heading8", "aligned"):  # aligned: start facing +z, as the data rules align every sequence
+        state = init_state(adapter, body, batch, generator, device, search_heading=facing == "heading8")
+    else:
+        raise ValueError(f"sls: unknown objective.facing {facing!r}; choose heading8 (protocol v1), aligned or search")
     subset = body.loss_vertex_indices(loss_vertices)
     lm_idx = body.landmark_indices.to(device)
     skin_idx = lm_idx if pts is None else (None if subset is None else torch.cat([subset.to(device), lm_idx]))
@@ -480,6 +488,8 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
                               every=int(ad.get("every", 10)))
     latents = list(state.latents.values())
     flat_pts = None if pts is None else pts.flatten(0, 1)
+
+    trace = []  # (B,) the unweighted sum of the active data terms at every step (fit diagnostics)
 
     def step_loss(step):
         rot, trans, tau_hat = decode_anchors(state, anchor_t, idx)
@@ -493,6 +503,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
         if "time" in terms_used:
             terms["time"] = (tau_hat.double() - obs_t).square().mean(1).to(verts.dtype) * TIME_SCALE
         values = [terms[k] for k in terms_used]
+        trace.append(sum(v.detach() for v in values))
         if weights.due(step):
             weights.update(torch.stack([v.detach() for v in values]), _latent_grad_norms(values, latents))
         w = weights.w.to(device=device, dtype=verts.dtype)
@@ -509,7 +520,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
         return (data + lam * prior).sum(), log
 
     history = optimise(adapter.name, state.parameters(), steps, lr, lr_final, step_loss)
-    return state, {"history": history, "terms": terms_used,
+    return state, {"history": history, "terms": terms_used, "data_trace": torch.stack(trace) if trace else torch.zeros(0, B),
                    "weights": {k: weights.w[i].tolist() for i, k in enumerate(terms_used)}}
 
 
@@ -547,8 +558,12 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: SlsData, de
     per_seq = evaluate(body, output, data.eval, device, surface_points=None if sp in (None, "all") else int(sp))
     lm_err = (body.landmarks(output.vertices).cpu() - data.gt_landmarks.cpu().to(torch.float32)).norm(dim=-1).mean(-1)  # (B, A)
     t2 = time.perf_counter()
+    motions = [source.motions[sid] for sid in unit.sequence_ids]
+    gt_pose = ground_truth_pose(source.body, motions, data.anchor_t)
+    diagnostics = sequence_diagnostics(info["data_trace"], rot[:, :, 0], gt_pose[0][:, :, 0])
     for b, (sid, row) in enumerate(zip(unit.sequence_ids, per_seq)):
         row["id"] = sid
+        row["diagnostics"] = diagnostics[b]
         row["sums"]["landmark_m"] = float(lm_err[b].sum())
         if tau_hat is not None:
             row["tau_mae_s"] = float((tau_hat[b].detach().cpu().double() - data.anchor_t[b]).abs().mean())
@@ -558,17 +573,16 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: SlsData, de
         "timings": {"fit_s": t1 - t0, "eval_s": t2 - t1}, "device": str(device), "na_reason": None,
         "fit_log": info["history"], "terms": info["terms"], "final_weights": info["weights"],
         "decoder": "decode_anchors" if uses_anchor_decoder(adapter) else "completion.body_parameters",
-        "arrays": unit_arrays(unit, source, data, obs, rot, trans, state.shape()),  # the runner stores it as .npz
+        "arrays": unit_arrays(unit, data, obs, rot, trans, state.shape(), gt_pose),  # the runner stores it as .npz
     }
 
 
-def unit_arrays(unit, source: SlsData, data: SlsUnitData, obs: Observation, rot, trans, shape) -> dict:
+def unit_arrays(unit, data: SlsUnitData, obs: Observation, rot, trans, shape, gt_pose) -> dict:
     """The fitted and ground-truth motion at the anchors and a subsample of the observed scans,
     for the report's animations (:mod:`benchmark.unit_arrays`)."""
-    from benchmark.unit_arrays import fit_arrays, ground_truth_pose
+    from benchmark.unit_arrays import fit_arrays
 
-    motions = [source.motions[sid] for sid in unit.sequence_ids]
-    gt_rot, gt_trans, gt_shape = ground_truth_pose(source.body, motions, data.anchor_t)
+    gt_rot, gt_trans, gt_shape = gt_pose
     t0 = data.anchor_t[:, :1]
     return fit_arrays(unit, data.anchor_t - t0, rot, trans, shape, gt_rot, gt_trans, gt_shape, obs.timestamps - t0,
                       obs.points)

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from benchmark.fit_diagnostics import heading, root_errors  # noqa: F401  (re-exported)
+
 ERROR_MAX_MM = 200.0  # colour scale of per-vertex error: 0 .. ERROR_MAX_MM (clamped)
 VIEW_HEIGHT_M = 2.3  # metres shown vertically
 BACKGROUND = (246, 246, 246)
@@ -161,23 +163,6 @@ class Canvas:
     def border(self, colour, width: int = 3):
         self.rgb[:width], self.rgb[-width:] = colour, colour
         self.rgb[:, :width], self.rgb[:, -width:] = colour, colour
-
-
-def heading(rotations: np.ndarray) -> np.ndarray:
-    """(..., 3) horizontal facing direction of root rotations (..., 3, 3): the body's +z axis."""
-    f = rotations[..., :, 2].copy()
-    f[..., 1] = 0.0
-    return f / np.maximum(np.linalg.norm(f, axis=-1, keepdims=True), 1e-9)
-
-
-def root_errors(fit_root: np.ndarray, gt_root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame: geodesic angle between fitted and ground-truth root orientations and the angle
-    between their horizontal facing directions, both in degrees, from (T, 3, 3) rotations."""
-    rel = np.swapaxes(gt_root, -1, -2) @ fit_root
-    cos = np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    fh, gh = heading(fit_root), heading(gt_root)
-    cos_h = np.clip((fh * gh).sum(-1), -1.0, 1.0)
-    return np.degrees(np.arccos(cos)), np.degrees(np.arccos(cos_h))
 
 
 def render_frames(fit_vertices, gt_vertices, faces, gt_joints, parents, root_err, facing_err, t, obs_t=None,
