@@ -28,6 +28,7 @@ import torch
 
 BACKWARDS_DEG = 90.0  # mean facing error above which a fit is "backwards"
 CONVERGENCE_WINDOW = 0.1  # the share of the last steps the convergence figure looks at
+SMOOTHING = 0.02  # the share of steps averaged at each end of the convergence window
 CONVERGED_MAX_DECREASE = 0.01  # relative decrease of the data term over that window for "converged"
 FLAG = "⚠"  # the mark of a cell with a backwards or unconverged fit in the Markdown tables
 
@@ -51,14 +52,19 @@ def root_errors(fit_root: np.ndarray, gt_root: np.ndarray) -> tuple[np.ndarray, 
 
 
 def convergence(trace: Iterable[float]) -> float:
-    """The relative decrease of a per-step data term over the last CONVERGENCE_WINDOW of the steps:
-    ``(d[s0] - d[-1]) / d[s0]`` with ``s0`` that many steps before the last (at least one)."""
-    d = [float(v) for v in trace]
+    """The relative decrease of a per-step data term over the last CONVERGENCE_WINDOW of the steps,
+    ``(d0 - d1) / d0``: ``d1`` the mean of the last ``k`` steps, ``d0`` the mean of the ``k`` steps
+    ending ``window`` steps before the last (``window`` = CONVERGENCE_WINDOW of the steps, at least
+    one; ``k`` = 2 % of the steps, at least one: the mean smooths a data term estimated on a random
+    subset of the points at each step)."""
+    d = np.asarray([float(v) for v in trace], dtype=np.float64)
     if len(d) < 2:
         return float("nan")
-    window = max(1, math.ceil(CONVERGENCE_WINDOW * len(d)))
-    start = d[-1 - min(window, len(d) - 1)]
-    return (start - d[-1]) / start if start > 0 else 0.0
+    window = min(max(1, math.ceil(CONVERGENCE_WINDOW * len(d))), len(d) - 1)
+    k = max(1, min(round(SMOOTHING * len(d)), len(d) - window))
+    end = len(d) - window  # d0's last step + 1
+    start, last = float(d[end - k:end].mean()), float(d[-k:].mean())
+    return (start - last) / start if start > 0 else 0.0
 
 
 def sequence_diagnostics(data_trace: torch.Tensor, fit_root: torch.Tensor | None = None,

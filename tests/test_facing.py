@@ -57,3 +57,27 @@ def test_fit_refuses_an_unknown_facing_rule(anny_body):
     with pytest.raises(ValueError, match="unknown facing rule 'mirror'"):
         fit(make_adapter("no-prior"), anny_body, batch, steps=1, lr=0.03, lambda_prior=0.01,
             generator=torch.Generator().manual_seed(0), device="cpu", facing="mirror")
+
+
+_SLOW = pytest.mark.slow  # the default suite covers one prior of each kind: per-frame, fixed-window, continuous
+
+
+@pytest.mark.parametrize("prior", ["vposer-slerp", "sequential-primitives", "motion-dvae",
+                                   *(pytest.param(p, marks=_SLOW) for p in ("frequency-guided", "hmvae", "hmvae-trajectory",
+                                                                             "structured-latent", "slerp"))])
+def test_every_prior_fits_through_the_facing_search(anny_body, prior):
+    """Per-frame, fixed-window and continuous priors, with and without their own root orientation,
+    translation or heading: the facing search (protocol v2) selects one hypothesis per sequence and
+    the full fit continues from it, with a subsampled data term."""
+    from benchmark.registry import make_adapter
+
+    scans, _ = make_scans(anny_body, [_turned_walker(math.pi, frames=8), _turned_walker(0.5, frames=8)],
+                          fps=10.0, num_points=200, seed=0)
+    out_t = (torch.arange(6, dtype=torch.float64) / 8.0)[None].expand(2, -1)
+    batch = observation_batch(scans, 0.8, out_t, "cpu")
+    state, info = fit(make_adapter(prior), anny_body, batch, steps=3, lr=0.03, lambda_prior=0.01,
+                      generator=torch.Generator().manual_seed(0), device="cpu", loss_vertices=300, facing="search",
+                      shape_lr_scale=10.0, points_per_step=100)
+    assert len(info["facing_yaw_rad"]) == 2 and len(info["facing_scores_mm"][0]) == 8
+    assert info["data_trace"].shape == (3, 2) and torch.isfinite(info["data_trace"]).all()
+    assert state.shape_param.shape[0] == 2

@@ -27,8 +27,8 @@ def _yaw(deg):
 
 def test_convergence_is_the_relative_decrease_over_the_last_tenth():
     trace = [100.0 - i for i in range(100)]  # 100 -> 1, falling by 1 per step
-    # last 10 steps: from d[89] = 11 to d[99] = 1
-    assert convergence(trace) == pytest.approx((11.0 - 1.0) / 11.0)
+    # window 10 steps, 2-step means: d0 = mean(d[88:90]) = 11.5, d1 = mean(d[98:100]) = 1.5
+    assert convergence(trace) == pytest.approx((11.5 - 1.5) / 11.5)
     assert convergence([5.0] * 50) == 0.0
     assert convergence([10.0, 9.0]) == pytest.approx(0.1)
     assert math.isnan(convergence([3.0]))

@@ -291,3 +291,28 @@ def test_pykdtree_results_do_not_depend_on_openmp_threads():
         env = {**__import__("os").environ, "OMP_NUM_THREADS": threads}
         outs.add(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout)
     assert len(outs) == 1
+
+
+def test_static_chamfer_sampled_points_are_unbiased():
+    """StaticChamfer(b_sample=m): the points -> mesh mean over m points drawn with replacement is an
+    unbiased estimate of the exact loss and of its gradient (the completion fit's points_per_step)."""
+    from benchmark.metrics.chamfer import StaticChamfer, chamfer_loss
+
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(3, 40, 3, generator=g, dtype=torch.float64).requires_grad_(True)
+    b = torch.randn(3, 300, 3, generator=g, dtype=torch.float64)
+    bl = torch.tensor([300, 120, 17])
+    static = StaticChamfer(b, bl)
+    exact = chamfer_loss(a, b, b_lengths=bl)
+    (grad_exact,) = torch.autograd.grad(exact.sum(), a)
+    sampler = torch.Generator().manual_seed(1)
+    values, grads = [], []
+    for _ in range(400):
+        v = static(a, b_sample=30, generator=sampler)
+        values.append(v.detach())
+        grads.append(torch.autograd.grad(v.sum(), a)[0])
+    mean_v, mean_g = torch.stack(values).mean(0), torch.stack(grads).mean(0)
+    assert torch.allclose(mean_v, exact.detach(), rtol=0.02)
+    assert (mean_g - grad_exact).norm() < 0.05 * grad_exact.norm()
+    # a sample as large as the largest element is the exact loss
+    assert torch.equal(static(a, b_sample=300).detach(), static(a).detach())

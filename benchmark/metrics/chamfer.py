@@ -526,9 +526,26 @@ class StaticChamfer:
         _map_elements(run, n_batch)
         return torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
 
+    def sample_b(self, m: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N, min(m, Q), 3) points of ``b`` drawn uniformly with replacement from each element's valid
+        prefix, and their (N,) lengths: an unbiased sample for the mean over ``b`` of any function."""
+        m = min(int(m), self.b.shape[1])
+        u = torch.rand(self.b.shape[0], m, generator=generator, dtype=torch.float64)
+        idx = (u * self.bl.to(torch.float64)[:, None]).long().clamp_max(self.bl[:, None] - 1).to(self.b.device)
+        return torch.gather(self.b, 1, idx[..., None].expand(-1, -1, 3)), torch.full_like(self.bl, m)
+
     def __call__(self, a: torch.Tensor, a_lengths: torch.Tensor | None = None, squared: bool = False,
-                 reduction: str = "none", eps: float = DEFAULT_EPS) -> torch.Tensor:
-        """The Chamfer loss of ``a`` (N, P, 3) against the fixed ``b``; see :func:`chamfer_loss`."""
+                 reduction: str = "none", eps: float = DEFAULT_EPS, b_sample: int | None = None,
+                 generator: torch.Generator | None = None) -> torch.Tensor:
+        """The Chamfer loss of ``a`` (N, P, 3) against the fixed ``b``; see :func:`chamfer_loss`.
+
+        ``b_sample``: where an element of ``b`` has more points than that, the ``b -> a`` mean is
+        taken over ``b_sample`` of its points drawn uniformly with replacement (:meth:`sample_b`,
+        ``generator``): an unbiased estimate of the exact mean, with an unbiased gradient. The
+        ``a -> b`` direction stays exact (every point of ``b``).
+        """
+        if b_sample is not None and int(b_sample) < int(self.bl.max()):
+            return self._sampled(a, a_lengths, squared, reduction, eps, int(b_sample), generator)
         if not self.cached:
             return chamfer_loss(a, self.b, a_lengths, self.b_lengths, squared=squared, reduction=reduction, eps=eps)
         caller = "StaticChamfer"
@@ -547,6 +564,42 @@ class StaticChamfer:
         idx_ab, idx_ba = self.indices(a, al.tolist())
         value = 0.5 * (_directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
                        + _directed_mean(self.b, a, idx_ba, self.bmask, self.bl, squared, eps))
+        if reduction == "mean":
+            return value.mean()
+        if reduction == "sum":
+            return value.sum()
+        return value
+
+
+    def _sampled(self, a, a_lengths, squared, reduction, eps, m, generator):
+        caller = "StaticChamfer"
+        if reduction not in REDUCTIONS:
+            raise ValueError(f"{caller}: `reduction` must be one of {REDUCTIONS}; got {reduction!r}.")
+        validate_points(a, "a", caller)
+        al = validate_lengths(a_lengths, "a_lengths", caller, a.shape[0], a.shape[1], a.device)
+        a, amask = _clean_padding(a, al, "a", caller)
+        bs, bsl = self.sample_b(m, generator)
+        bsmask = _prefix_mask(bsl, bs.shape[1])
+        if self.cached:
+            a_np = a.detach().to(torch.float64).numpy()
+            bs_np = bs.to(torch.float64).numpy()
+            lens = al.tolist()
+            idx_ab = np.full(a_np.shape[:2], -1, dtype=np.int64)
+            idx_ba = np.empty(bs_np.shape[:2], dtype=np.int64)
+
+            def run(n: int) -> None:
+                pa = np.ascontiguousarray(a_np[n, : lens[n]])
+                idx_ab[n, : lens[n]] = query_tree(self._b_trees[n], pa)[1]
+                idx_ba[n] = query_tree(build_tree(pa), np.ascontiguousarray(bs_np[n]))[1]
+
+            _map_elements(run, a_np.shape[0])
+            idx_ab, idx_ba = torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
+        else:
+            backend = resolve_backend("auto", a.device)
+            idx_ab = _indices(a.detach(), self.b, al, self.bl, backend, DEFAULT_MAX_TILE_ELEMENTS, both=False)[0]
+            idx_ba = _indices(bs, a.detach(), bsl, al, backend, DEFAULT_MAX_TILE_ELEMENTS, both=False)[0]
+        value = 0.5 * (_directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
+                       + _directed_mean(bs, a, idx_ba, bsmask, bsl, squared, eps))
         if reduction == "mean":
             return value.mean()
         if reduction == "sum":

@@ -241,7 +241,8 @@ def optimise(prior_name: str, parameters, steps: int, lr: float, lr_final_fracti
 
 def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lambda_prior: float,
         generator: torch.Generator, device, lr_final_fraction: float = 0.1, loss_vertices: int | None = None,
-        callback=None, facing: str = "heading8", shape_lr_scale: float = 1.0) -> tuple[FitState, dict]:
+        callback=None, facing: str = "heading8", shape_lr_scale: float = 1.0,
+        points_per_step: int | None = None) -> tuple[FitState, dict]:
     """Optimise one batch (see module docstring). Returns the state and a log: ``history`` (the
     logged steps), ``data_trace`` ((steps, B) the data term of every sequence at every step, mm)
     and, with ``facing="search"``, the facing search's choices.
@@ -253,6 +254,12 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     nearest neighbours); the KD-trees of the observed points, which never move, are built once
     per fit (:class:`~benchmark.metrics.chamfer.StaticChamfer`) and shared by the heading search
     and every step.
+
+    ``points_per_step``: where a frame has more observed points, each step's observed points ->
+    mesh mean is taken over that many of them drawn uniformly with replacement, anew at every step
+    (:meth:`~benchmark.metrics.chamfer.StaticChamfer.sample_b`, seeded from ``generator``): an
+    unbiased estimate of the exact data term and of its gradient. The mesh -> observed points
+    direction always uses every observed point. None: the exact data term at every step.
     """
     subset = body.loss_vertex_indices(loss_vertices)
     if facing not in FACING_RULES:
@@ -266,12 +273,15 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         state = init_state(adapter, body, batch, generator, device, data_term=data_term)
 
     trace = []  # (B,) data term of every step: the convergence diagnostics (benchmark.fit_diagnostics)
+    sampler = None
+    if points_per_step is not None:
+        sampler = torch.Generator().manual_seed(int(torch.randint(0, 2**62, (1,), generator=generator)))
 
     def step_loss(step):
         rot, trans = body_parameters(state, batch.timestamps, observed=True)
         rest = body.prepare(state.shape())
         verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices  # (B, n, V, 3)
-        data = data_term(verts.flatten(0, 1)).view(B, n).mean(1) * 1000.0
+        data = data_term(verts.flatten(0, 1), b_sample=points_per_step, generator=sampler).view(B, n).mean(1) * 1000.0
         trace.append(data.detach())
         prior = adapter.prior_term(state.latents)
         return (data + lambda_prior * prior).sum(), lambda: {"data_mm": float(data.detach().mean()),
@@ -342,11 +352,11 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
     """
     B = batch.batch_size
     K = FACING_HYPOTHESES
-    probe = init_state(adapter, body, batch, generator, device, search_heading=False)
-    if probe.root is None and probe.heading is None:
-        return probe, {"facing": "none: the prior has no free root orientation or heading"}
     small = _subset_batch(_repeat_batch(batch, K), FACING_POINTS)
     hyp = init_state(adapter, body, small, generator, device, search_heading=False)
+    if hyp.root is None and hyp.heading is None:
+        return init_state(adapter, body, batch, generator, device, search_heading=False), {
+            "facing": "none: the prior has no free root orientation or heading"}
     yaw = (2 * math.pi / K) * torch.arange(K, device=device, dtype=batch.points.dtype).repeat(B)
     with torch.no_grad():
         base_root = None if hyp.root is None else hyp.root.detach().clone()
@@ -367,6 +377,9 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
         scores = _data_term(hyp, body, small, subset, chamfer).view(B, K)
     best = scores.argmin(1)  # (B,)
     pick = torch.arange(B, device=device) * K + best
+    # the adapter's own per-batch state (e.g. the initial latents its prior term measures from)
+    # must be the full batch's when the full fit starts: initialise it last
+    probe = init_state(adapter, body, batch, generator, device, search_heading=False)
     state = _select(hyp, pick, probe)
     return state, {"facing_yaw_rad": [float(y) for y in yaw.view(B, K)[torch.arange(B), best]],
                    "facing_scores_mm": [[round(float(v), 3) for v in row] for row in scores]}
