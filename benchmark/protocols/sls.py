@@ -55,6 +55,14 @@ renormalisation), then smoothed: w <- (1 - beta) w + beta w*. Weights start at 1
 with a single active term the weight stays 1. alpha = ``adaptive.alpha`` (1.5), beta =
 ``adaptive.smoothing`` (0.5). Weights are positive by construction (G is floored at 1e-12).
 
+Facing (``objective.facing``; protocol v2: ``aligned``): every fit starts with its free root
+orientation at identity (or its heading at 0), facing +z, the facing the data rules give each
+cycle's first anchor. Protocol v1 (``heading8``) ran table1 v1's 8-yaw T-pose score instead, which
+turned landmark-only fits backwards; ``search`` runs table1 v2's coarse multi-hypothesis search.
+The body shape has its own learning rate, ``objective.shape_lr_scale`` x lr. Every unit records,
+per sequence, the root-orientation and facing errors, a backwards flag, the final data terms and
+their decrease over the last 10 % of the steps (:mod:`benchmark.fit_diagnostics`).
+
 Variables: the adapter's latents, the body shape and the free rigid parameters that
 :func:`benchmark.protocols.completion.init_state` gives the adapter (per-observed-anchor root
 orientation / translation, or a heading and offset). :func:`~benchmark.protocols.completion.init_state`
@@ -101,7 +109,7 @@ import roma
 import torch
 
 from benchmark.degrade import degrade, fingerprint
-from benchmark.metrics.chamfer import chamfer_loss
+from benchmark.metrics.chamfer import StaticChamfer
 from benchmark.observations import Landmarks, PointCloudSequence, ground_truth_at, sample_surface
 from benchmark.fit_diagnostics import sequence_diagnostics
 from benchmark.protocols.completion import FitState, apply_free_rigid, body_parameters, facing_search, init_state, optimise
@@ -487,7 +495,8 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
     weights = AdaptiveWeights(terms_used, B, alpha=float(ad.get("alpha", 1.5)), smoothing=float(ad.get("smoothing", 0.5)),
                               every=int(ad.get("every", 10)))
     latents = list(state.latents.values())
-    flat_pts = None if pts is None else pts.flatten(0, 1)
+    # the observed points never move: their KD-trees are built once (same values as chamfer_loss)
+    dense = None if pts is None else StaticChamfer(pts.flatten(0, 1))
 
     trace = []  # (B,) the unweighted sum of the active data terms at every step (fit diagnostics)
 
@@ -499,7 +508,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
         terms = {"mocap": (pred_lm - lm).square().sum(-1).mean((1, 2)) * MOCAP_SCALE}
         if pts is not None:
             v = verts[:, :, : verts.shape[2] - lm_idx.numel()] if skin_idx is not None else verts
-            terms["dense"] = chamfer_loss(v.flatten(0, 1), flat_pts).view(B, n).mean(1) * DENSE_SCALE
+            terms["dense"] = dense(v.flatten(0, 1)).view(B, n).mean(1) * DENSE_SCALE
         if "time" in terms_used:
             terms["time"] = (tau_hat.double() - obs_t).square().mean(1).to(verts.dtype) * TIME_SCALE
         values = [terms[k] for k in terms_used]
@@ -519,7 +528,12 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
 
         return (data + lam * prior).sum(), log
 
-    history = optimise(adapter.name, state.parameters(), steps, lr, lr_final, step_loss)
+    params = state.parameters()
+    shape_lr_scale = float(objective.get("shape_lr_scale", 1.0))
+    if shape_lr_scale != 1.0:  # the body shape on its own learning rate (as table1 v2)
+        params = [{"params": [p for p in params if p is not state.shape_param]},
+                  {"params": [state.shape_param], "lr": lr * shape_lr_scale}]
+    history = optimise(adapter.name, params, steps, lr, lr_final, step_loss)
     return state, {"history": history, "terms": terms_used, "data_trace": torch.stack(trace) if trace else torch.zeros(0, B),
                    "weights": {k: weights.w[i].tolist() for i, k in enumerate(terms_used)}}
 
