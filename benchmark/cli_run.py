@@ -215,7 +215,16 @@ def _cmd_train(args) -> int:
     if not hasattr(cls, "train_embedded"):
         raise ValueError(f"prior {args.name!r} has no training recipe (no train_embedded classmethod)")
     out = Path(args.out) if args.out else None
-    record = cls.train_embedded(out_dir=out, steps=args.steps, seed=args.seed, overwrite=args.force)
+    from priors.training import WEIGHTS_DIR, training_session
+
+    # every loop of the recipe checkpoints here; --resume continues from it (priors/training.py)
+    state_dir = (out or WEIGHTS_DIR) / ".train_state" / args.name
+    if args.resume and not state_dir.exists():
+        raise FileNotFoundError(f"train {args.name} --resume: no training state in {state_dir}; start the training "
+                                f"without --resume (it checkpoints every {args.checkpoint_every} steps)")
+    with training_session(state_dir, resume=args.resume, checkpoint_every=args.checkpoint_every,
+                          val_every=args.val_every):
+        record = cls.train_embedded(out_dir=out, steps=args.steps, seed=args.seed, overwrite=args.force)
     print(record)
     return 0
 
@@ -322,6 +331,11 @@ def add_run_commands(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="output folder (default: priors/weights)")
     p.add_argument("--force", action="store_true", help="overwrite existing weights")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted training from its last checkpoint (OUT/.train_state/NAME; add --force when "
+                        "the weights file exists)")
+    p.add_argument("--checkpoint-every", type=int, default=200, help="save the resumable training state every N steps")
+    p.add_argument("--val-every", type=int, default=500, help="log the validation loss every N steps (0: at the end only)")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("export-onnx", help="export a prior's decoder to ONNX (dynamic batch) and check it with onnxruntime",

@@ -164,6 +164,53 @@ def fixed_rest_skeleton() -> tuple[torch.Tensor, str]:
 
 
 # -- the loop --------------------------------------------------------------------------------
+@dataclass
+class TrainingSession:
+    """Where a training run keeps its resumable state, set for the runs of a ``with`` block
+    (:func:`training_session`). Every :func:`train_loop` call of the block is numbered in call
+    order (a recipe that trains two networks makes two calls) and saves, every
+    ``checkpoint_every`` steps, its model, optimiser, schedule, batching generator, position in the
+    epoch, history and elapsed time to ``state_dir/loop<k>.pt`` (atomically). With ``resume``, a
+    call whose state file exists continues from it, and a call that had finished is replayed from
+    its final state without training; the result is the same as an uninterrupted run's (the batch
+    order and every update are restored exactly). ``val_every``: also log the validation loss every
+    that many steps (0: only at the end)."""
+
+    state_dir: Path
+    resume: bool = False
+    checkpoint_every: int = 200
+    val_every: int = 0
+    calls: int = 0
+
+    def state_path(self) -> Path:
+        path = self.state_dir / f"loop{self.calls}.pt"
+        self.calls += 1
+        return path
+
+
+_SESSION: TrainingSession | None = None
+
+
+class training_session:
+    """``with training_session(state_dir, resume=...):`` makes every :func:`train_loop` inside
+    checkpoint into ``state_dir`` and, with ``resume``, continue from it (:class:`TrainingSession`)."""
+
+    def __init__(self, state_dir: str | Path, resume: bool = False, checkpoint_every: int = 200, val_every: int = 0):
+        self.session = TrainingSession(Path(state_dir), resume, checkpoint_every, val_every)
+
+    def __enter__(self) -> TrainingSession:
+        global _SESSION
+        if _SESSION is not None:
+            raise RuntimeError("training_session: sessions do not nest")
+        self.session.state_dir.mkdir(parents=True, exist_ok=True)
+        _SESSION = self.session
+        return self.session
+
+    def __exit__(self, *exc) -> None:
+        global _SESSION
+        _SESSION = None
+
+
 def seed_everything(seed: int) -> torch.Generator:
     """Seed torch's global RNG (initialisation, dropout) and return a CPU generator for batching."""
     torch.manual_seed(seed)
@@ -214,13 +261,31 @@ def train_loop(
         torch.set_num_threads(num_threads)
     try:
         return _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay, final_lr_ratio, log_every,
-                           val_data, val_batch)
+                           val_data, val_batch, _SESSION)
     finally:
         torch.set_num_threads(old_threads)
 
 
+def _save_state(path: Path, state: dict) -> None:
+    _atomic_write(path, lambda tmp: torch.save(state, tmp))
+
+
+def _load_state(path: Path, steps: int, seed: int, n: int) -> dict:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise ValueError(f"{path}: unreadable training state ({type(exc).__name__}: {exc}); delete it to train "
+                         "from the start, or rerun without --resume") from None
+    mine = {"steps": steps, "seed": seed, "samples": n}
+    theirs = {k: state.get(k) for k in mine}
+    if theirs != mine:
+        raise ValueError(f"{path}: saved by a different training run ({theirs}, this run {mine}); delete it or rerun "
+                         "without --resume")
+    return state
+
+
 def _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay, final_lr_ratio, log_every, val_data,
-                val_batch) -> TrainResult:
+                val_batch, session: TrainingSession | None = None) -> TrainResult:
     if steps < 1 or batch_size < 1:
         raise ValueError(f"steps and batch_size must be >= 1, got {steps}, {batch_size}")
     n = data.shape[0]
@@ -238,8 +303,29 @@ def _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay,
     model.train()
     perm, pos = torch.randperm(n, generator=gen), 0
     history, window = [], []
-    t0 = time.perf_counter()
-    for step in range(1, steps + 1):
+    final_train, start, before, saved = None, 1, 0.0, 0
+    state_path = session.state_path() if session is not None else None
+    if state_path is not None and session.resume and state_path.exists():
+        state = _load_state(state_path, steps, seed, n)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimiser"])
+        sched.load_state_dict(state["schedule"])
+        gen.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        perm, pos, history, final_train = state["perm"], state["pos"], state["history"], state["final_train"]
+        start, before = state["step"] + 1, state["wall_s"]
+        saved = state["step"]
+        log.info("resumed %s at step %d of %d", state_path, state["step"], steps)
+
+    def checkpoint(step: int, wall: float) -> None:
+        _save_state(state_path, {
+            "steps": steps, "seed": seed, "samples": n, "step": step, "model": model.state_dict(),
+            "optimiser": opt.state_dict(), "schedule": sched.state_dict(), "generator": gen.get_state(),
+            "torch_rng": torch.get_rng_state(), "perm": perm, "pos": pos, "history": history,
+            "final_train": final_train, "wall_s": wall})
+
+    t0 = time.perf_counter() - before
+    for step in range(start, steps + 1):
         if pos + batch_size > n:
             perm, pos = torch.randperm(n, generator=gen), 0
         batch = data[perm[pos : pos + batch_size]]
@@ -255,9 +341,19 @@ def _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay,
         window.append({k: float(v.detach()) for k, v in parts.items()})
         if step % log_every == 0 or step == steps:
             mean = {k: sum(w[k] for w in window) / len(window) for k in window[0]}
-            history.append({"step": step, **mean})
-            log.info("step %d/%d %s", step, steps, " ".join(f"{k}={v:.4g}" for k, v in mean.items()))
+            entry = {"step": step, **mean}
+            if session is not None and session.val_every and val_data is not None and (
+                    step % session.val_every == 0 or step == steps):
+                entry.update({f"val_{k}": v for k, v in evaluate(model, loss_fn, val_data, val_batch).items()})
+            entry["wall_s"] = round(time.perf_counter() - t0, 2)
+            history.append(entry)
+            log.info("step %d/%d %s", step, steps, " ".join(f"{k}={v:.4g}" for k, v in entry.items() if k != "step"))
             final_train, window = mean, []
+        # at a log step (no partial window to save), once per checkpoint_every steps, and at the end
+        if state_path is not None and not window and (step // session.checkpoint_every > saved // session.checkpoint_every
+                                                      or step == steps):
+            checkpoint(step, time.perf_counter() - t0)
+            saved = step
     wall = time.perf_counter() - t0
     final_val = evaluate(model, loss_fn, val_data, val_batch) if val_data is not None else None
     return TrainResult(steps=steps, wall_s=wall, final_train=final_train, final_val=final_val, history=history)

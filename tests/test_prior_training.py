@@ -63,3 +63,66 @@ def test_fallback_skeleton_is_a_plausible_t_pose():
     assert j.shape == (22, 3) and torch.equal(j[0], torch.zeros(3))
     assert j[1, 0] > 0 > j[2, 0] and j[20, 0] > 0.5 > -0.5 > j[21, 0]  # left at +x, arms out
     assert j[15, 1] > j[12, 1] > j[9, 1] > 0 > j[4, 1] > j[7, 1]  # head up, feet down
+
+
+class _Killed(Exception):
+    """Stands for the process being killed mid-training."""
+
+
+def test_train_loop_resumes_exactly_after_an_interruption(tmp_path):
+    """``train NAME --resume``: a loop stopped after a checkpoint continues from it and ends with the
+    same weights, losses and history as an uninterrupted run (dropout's RNG and the batch order
+    included); its record keeps the validation curve and the wall time."""
+    x = torch.linspace(-1, 1, 64)[:, None]
+    data = torch.cat([x, 3 * x - 0.5], dim=1)
+
+    def loss_fn(model, batch):
+        return {"loss": (model(batch[:, :1]) - batch[:, 1:]).square().mean()}
+
+    def make():
+        training.seed_everything(0)
+        return torch.nn.Sequential(torch.nn.Linear(1, 8), torch.nn.Dropout(0.2), torch.nn.Linear(8, 1))
+
+    def run(state_dir, resume=False, stop_at=None):
+        model = make()
+        calls = []
+
+        def loss(model, batch):
+            calls.append(1) if model.training else None  # training steps only, not validation
+            if stop_at is not None and len(calls) > stop_at:
+                raise _Killed
+            return loss_fn(model, batch)
+
+        with training.training_session(state_dir, resume=resume, checkpoint_every=40, val_every=50):
+            res = training.train_loop(model, loss, data, steps=150, batch_size=16, seed=0, lr=0.02, log_every=25,
+                                      val_data=data)
+        return model, res
+
+    full_model, full = run(tmp_path / "a")
+    with pytest.raises(_Killed):
+        run(tmp_path / "b", stop_at=110)  # checkpoints at steps 50 and 100, killed during step 111
+    state = torch.load(tmp_path / "b" / "loop0.pt", weights_only=False)
+    assert state["step"] == 100
+    model, res = run(tmp_path / "b", resume=True)
+    for p, q in zip(model.parameters(), full_model.parameters()):
+        assert torch.equal(p, q)
+    strip = lambda h: [{k: v for k, v in e.items() if k != "wall_s"} for e in h]  # noqa: E731
+    assert strip(res.history) == strip(full.history) and res.final_val == full.final_val
+    assert [h["step"] for h in res.history if "val_loss" in h] == [50, 100, 150]
+    # a finished loop resumes to its end state without training again
+    model2, res2 = run(tmp_path / "b", resume=True, stop_at=0)
+    assert all(torch.equal(p, q) for p, q in zip(model2.parameters(), full_model.parameters()))
+    # a state file from another run is refused with the file named
+    torch.save({**state, "seed": 7}, tmp_path / "b" / "loop0.pt")
+    with pytest.raises(ValueError, match="loop0.pt: saved by a different training run"):
+        run(tmp_path / "b", resume=True)
+
+
+def test_train_resume_without_a_state_names_the_folder(tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "benchmark", "train", "vposer", "--resume", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2, r.stderr
+    assert "no training state in" in r.stderr and str(tmp_path / ".train_state" / "vposer") in r.stderr

@@ -430,6 +430,15 @@ def chamfer_loss(a: torch.Tensor, b: torch.Tensor, a_lengths: torch.Tensor | Non
     return _chamfer(a, b, a_lengths, b_lengths, squared, backend, reduction, max_tile_elements, eps, "chamfer_loss")
 
 
+def _reduce(value: torch.Tensor, reduction: str) -> torch.Tensor:
+    """(N,) per-element values reduced as ``reduction`` ("none", "mean" or "sum") says."""
+    if reduction == "mean":
+        return value.mean()
+    if reduction == "sum":
+        return value.sum()
+    return value
+
+
 def _chamfer(a, b, a_lengths, b_lengths, squared, backend, reduction, max_tile_elements, eps, caller):
     _validate_options(backend, max_tile_elements, caller)
     if reduction not in REDUCTIONS:
@@ -443,11 +452,7 @@ def _chamfer(a, b, a_lengths, b_lengths, squared, backend, reduction, max_tile_e
     idx_ab, idx_ba = _indices(a.detach(), b.detach(), al, bl, backend, max_tile_elements, both=True)
     value = 0.5 * (_directed_mean(a, b, idx_ab, amask, al, squared, eps)
                    + _directed_mean(b, a, idx_ba, bmask, bl, squared, eps))
-    if reduction == "mean":
-        return value.mean()
-    if reduction == "sum":
-        return value.sum()
-    return value
+    return _reduce(value, reduction)
 
 
 def chamfer_distance(a: torch.Tensor, b: torch.Tensor, a_lengths: torch.Tensor | None = None,
@@ -564,11 +569,7 @@ class StaticChamfer:
         idx_ab, idx_ba = self.indices(a, al.tolist())
         value = 0.5 * (_directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
                        + _directed_mean(self.b, a, idx_ba, self.bmask, self.bl, squared, eps))
-        if reduction == "mean":
-            return value.mean()
-        if reduction == "sum":
-            return value.sum()
-        return value
+        return _reduce(value, reduction)
 
 
     def _sampled(self, a, a_lengths, squared, reduction, eps, m, generator):
@@ -600,8 +601,4 @@ class StaticChamfer:
             idx_ba = _indices(bs, a.detach(), bsl, al, backend, DEFAULT_MAX_TILE_ELEMENTS, both=False)[0]
         value = 0.5 * (_directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
                        + _directed_mean(bs, a, idx_ba, bsmask, bsl, squared, eps))
-        if reduction == "mean":
-            return value.mean()
-        if reduction == "sum":
-            return value.sum()
-        return value
+        return _reduce(value, reduction)
