@@ -122,7 +122,7 @@ def test_train_resume_without_a_state_names_the_folder(tmp_path):
     import subprocess
     import sys
 
-    r = subprocess.run([sys.executable, "-m", "benchmark", "train", "vposer", "--resume", "--out", str(tmp_path)],
+    r = subprocess.run([sys.executable, "-m", "benchmark", "train", "vposer-slerp", "--resume", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2, r.stderr
-    assert "no training state in" in r.stderr and str(tmp_path / ".train_state" / "vposer") in r.stderr
+    assert "no training state in" in r.stderr and str(tmp_path / ".train_state" / "vposer-slerp") in r.stderr
