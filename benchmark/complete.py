@@ -255,9 +255,10 @@ def add_complete_command(sub) -> None:
     p.add_argument("--steps", type=int, default=None, help="override the profile's steps")
     p.add_argument("--device", default=None)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--facing", choices=["search", "heading8"], default="search",
-                   help="how the fit finds the facing direction: 'search' fits every yaw hypothesis briefly and keeps "
-                        "the best (issue 11's initialisation); 'heading8' is table1 protocol v1's T-pose yaw score")
+    p.add_argument("--facing", choices=["observation", "search", "heading8"], default="observation",
+                   help="how the fit finds the facing direction: 'observation' (table1 protocol v2) finds it on the "
+                        "observation with the prior-free coarse search and turns the prior's start to it; 'search' runs "
+                        "that search with the prior itself; 'heading8' is table1 protocol v1's T-pose yaw score")
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
     p.add_argument("--weights", default=None, help="checkpoint for --size paper")
     p.add_argument("--body", default="anny")

@@ -11,7 +11,8 @@ import torch
 
 from benchmark.motion import Motion
 from benchmark.observations import make_scans
-from benchmark.protocols.completion import FACING_RULES, facing_search, fit, observation_batch
+from benchmark.protocols.completion import (FACING_RULES, _mean_heading, facing_search, fit, observation_batch,
+                                              observed_facing)
 
 
 def _turned_walker(yaw: float, frames: int = 20, fps: float = 10.0) -> Motion:
@@ -53,7 +54,7 @@ def test_fit_refuses_an_unknown_facing_rule(anny_body):
 
     scans, _ = make_scans(anny_body, [_turned_walker(0.0, frames=4)], fps=10.0, num_points=50, seed=0)
     batch = observation_batch(scans, 0.4, torch.zeros(1, 2, dtype=torch.float64), "cpu")
-    assert FACING_RULES == ("heading8", "search")
+    assert FACING_RULES == ("heading8", "search", "observation")
     with pytest.raises(ValueError, match="unknown facing rule 'mirror'"):
         fit(make_adapter("no-prior"), anny_body, batch, steps=1, lr=0.03, lambda_prior=0.01,
             generator=torch.Generator().manual_seed(0), device="cpu", facing="mirror")
@@ -75,7 +76,17 @@ def test_every_prior_fits_through_the_facing_search(anny_body, prior):
                           fps=10.0, num_points=200, seed=0)
     out_t = (torch.arange(6, dtype=torch.float64) / 8.0)[None].expand(2, -1)
     batch = observation_batch(scans, 0.8, out_t, "cpu")
-    state, info = fit(make_adapter(prior), anny_body, batch, steps=3, lr=0.03, lambda_prior=0.01,
+    adapter = make_adapter(prior)
+    # table1 v2: the facing found on the observation (prior-free search), the prior's start turned to it
+    start, log = observed_facing(adapter, anny_body, batch, torch.Generator().manual_seed(0), "cpu", lr=0.03,
+                                 lambda_prior=0.01)
+    target = torch.tensor(log["facing_yaw_rad"], dtype=torch.float32)
+    turned = _mean_heading(start, batch)
+    assert torch.allclose(torch.remainder(turned - target + math.pi, 2 * math.pi) - math.pi, torch.zeros(2), atol=1e-3)
+    err = torch.remainder(target - torch.tensor([math.pi, 0.5]) + math.pi, 2 * math.pi) - math.pi
+    assert (err.abs() <= math.pi / 4 + 1e-6).all(), log
+    # the per-prior coarse search and the full fit run for every kind of prior, with a subsampled data term
+    state, info = fit(adapter, anny_body, batch, steps=3, lr=0.03, lambda_prior=0.01,
                       generator=torch.Generator().manual_seed(0), device="cpu", loss_vertices=300, facing="search",
                       shape_lr_scale=10.0, points_per_step=100)
     assert len(info["facing_yaw_rad"]) == 2 and len(info["facing_scores_mm"][0]) == 8

@@ -269,6 +269,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     facing_log = {}
     if facing == "search":
         state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior)
+    elif facing == "observation":
+        state, facing_log = observed_facing(adapter, body, batch, generator, device, lr, lambda_prior)
     else:
         state = init_state(adapter, body, batch, generator, device, data_term=data_term)
 
@@ -297,9 +299,10 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
 
 
 # How a fit finds the facing direction: "heading8" (protocol v1 of table1): the 8-yaw Chamfer score
-# of the T-pose; "search": :func:`facing_search`, a coarse fit per yaw hypothesis (what `complete`
-# uses; table1 moves to it with its protocol version 2).
-FACING_RULES = ("heading8", "search")
+# of the T-pose; "search": :func:`facing_search` with the prior itself, a coarse fit per yaw
+# hypothesis; "observation" (table1 protocol v2, `complete`): :func:`observed_facing`, the facing
+# found on the observation by the prior-free search, every prior's start turned to it.
+FACING_RULES = ("heading8", "search", "observation")
 FACING_HYPOTHESES = 8  # yaw hypotheses of the facing search, evenly spaced about y
 FACING_POINTS = 256  # observed points per frame the hypotheses are scored on
 FACING_VERTICES = 400  # mesh vertices (farthest-point subset) the hypotheses are scored on
@@ -383,6 +386,55 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
     state = _select(hyp, pick, probe)
     return state, {"facing_yaw_rad": [float(y) for y in yaw.view(B, K)[torch.arange(B), best]],
                    "facing_scores_mm": [[round(float(v), 3) for v in row] for row in scores]}
+
+
+def _mean_heading(state: FitState, batch: FitBatch) -> torch.Tensor:
+    """(B,) circular mean over the observed frames of the heading (yaw of the root's +z axis about +y) of ``state``."""
+    from benchmark.frames import heading
+
+    rot, _ = body_parameters(state, batch.timestamps, observed=True)
+    yaw = heading(rot[:, :, 0])  # (B, n)
+    return torch.atan2(torch.sin(yaw).mean(1), torch.cos(yaw).mean(1))
+
+
+@torch.no_grad()
+def observation_facing(body, batch: FitBatch, generator: torch.Generator, device, lr: float,
+                       lambda_prior: float) -> tuple[torch.Tensor, dict]:
+    """(B,) the facing of each sequence of ``batch``, found on the observation alone: the facing
+    search (:func:`facing_search`) of the prior-free body (``no-prior``: free per-frame pose, root
+    orientation and translation), then the circular mean of its fitted heading over the observed
+    frames. Returns the yaw (radians about +y, 0 = facing +z) and the search's log."""
+    from priors.no_prior import NoPrior
+
+    with torch.enable_grad():
+        ref, log = facing_search(NoPrior(device=device), body, batch, generator, device, lr, lambda_prior)
+    return _mean_heading(ref, batch), log
+
+
+def observed_facing(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device, lr: float,
+                    lambda_prior: float) -> tuple[FitState, dict]:
+    """The initial state of a fit under table1 protocol v2: the prior's own initial state
+    (:func:`init_state`, no heading search), turned about +y so that its mean heading over the
+    observed frames is the observation's facing (:func:`observation_facing`).
+
+    The facing of a body in a point cloud is a property of the observation, so it is found without
+    the prior, the same way for every prior: a prior whose decoder cannot yet represent the motion
+    (or whose coarse fits score poorly) still starts facing the right way, and a prior that turns
+    away during its own fit shows it in the diagnostics. The turn goes to the free root orientation
+    (per-frame priors) or to the free heading (priors that decode their own root orientation).
+    """
+    target, log = observation_facing(body, batch, generator, device, lr, lambda_prior)
+    state = init_state(adapter, body, batch, generator, device, search_heading=False)
+    if state.root is None and state.heading is None:
+        return state, {"facing": "none: the prior has no free root orientation or heading"}
+    with torch.no_grad():
+        start = _mean_heading(state, batch)
+        delta = torch.remainder(target - start + math.pi, 2 * math.pi) - math.pi
+        base_root = None if state.root is None else state.root.detach().clone()
+        base_heading = None if state.heading is None else state.heading.detach().clone()
+        _set_yaw(state, base_root, base_heading, delta)
+    return state, {"facing_yaw_rad": [round(float(y), 5) for y in target],
+                   "facing_scores_mm": log["facing_scores_mm"], "facing_turn_rad": [round(float(d), 5) for d in delta]}
 
 
 def _select(hyp: FitState, pick: torch.Tensor, like: FitState) -> FitState:
