@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass
 
 import roma
@@ -267,6 +268,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     B, n = batch.batch_size, batch.num_observed
     data_term = StaticChamfer(batch.points.flatten(0, 1), batch.lengths.flatten(0, 1))
     facing_log = {}
+    t_facing = time.perf_counter()
     if facing == "search":
         state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior)
     elif facing == "observation":
@@ -278,6 +280,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     sampler = None
     if points_per_step is not None:
         sampler = torch.Generator().manual_seed(int(torch.randint(0, 2**62, (1,), generator=generator)))
+
+    facing_log["facing_s"] = time.perf_counter() - t_facing
 
     def step_loss(step):
         rot, trans = body_parameters(state, batch.timestamps, observed=True)
