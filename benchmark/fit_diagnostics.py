@@ -7,7 +7,9 @@ Every completion-type unit (table1, sls, captured scans) stores, per sequence, i
   mean over the output frames (degrees); absent without a ground-truth motion;
 - ``facing_err_deg``: angle between the fitted and the ground-truth horizontal facing (the root's
   +z axis projected on the ground), mean over the output frames;
-- ``backwards``: ``facing_err_deg > BACKWARDS_DEG``: the fit faces the other way;
+- ``backwards``: ``facing_err_deg > BACKWARDS_DEG``: the fit faces the other way (a fit can also
+  face the right way upside down: the cell counts sequences whose ``root_err_deg`` exceeds
+  ``MISORIENTED_DEG`` as ``misoriented``);
 - ``final_data_mm``: the data term (the objective without the prior term) at the last step;
 - ``data_decrease_last10``: the data term's relative decrease over the last
   ``CONVERGENCE_WINDOW`` of the steps, ``(d[s0] - d[last]) / d[s0]``;
@@ -27,6 +29,7 @@ import numpy as np
 import torch
 
 BACKWARDS_DEG = 90.0  # mean facing error above which a fit is "backwards"
+MISORIENTED_DEG = 90.0  # mean root-orientation error above which a fit is "misoriented" (backwards, or e.g. upside down)
 CONVERGENCE_WINDOW = 0.1  # the share of the last steps the convergence figure looks at
 SMOOTHING = 0.02  # the share of steps averaged at each end of the convergence window
 CONVERGED_MAX_DECREASE = 0.01  # relative decrease of the data term over that window for "converged"
@@ -98,6 +101,7 @@ def cell_diagnostics(rows: Iterable[Mapping]) -> dict | None:
     out = {
         "sequences": len(diags),
         "backwards": sum(bool(d.get("backwards")) for d in with_gt),
+        "misoriented": sum(float(d["root_err_deg"]) > MISORIENTED_DEG for d in with_gt),
         "not_converged": sum(not d.get("converged", True) for d in diags),
         "data_decrease_last10_max": max(float(d["data_decrease_last10"]) for d in diags),
         "final_data_mm": float(np.mean([float(d["final_data_mm"]) for d in diags])),
@@ -109,5 +113,5 @@ def cell_diagnostics(rows: Iterable[Mapping]) -> dict | None:
 
 
 def cell_flagged(diag: Mapping | None) -> bool:
-    """True when a cell holds a backwards or unconverged fit."""
-    return bool(diag) and (diag.get("backwards", 0) > 0 or diag.get("not_converged", 0) > 0)
+    """True when a cell holds a backwards, misoriented or unconverged fit."""
+    return bool(diag) and any(diag.get(k, 0) > 0 for k in ("backwards", "misoriented", "not_converged"))

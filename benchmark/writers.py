@@ -20,7 +20,8 @@ import os
 from pathlib import Path
 from typing import Mapping, Sequence
 
-from benchmark.fit_diagnostics import BACKWARDS_DEG, CONVERGED_MAX_DECREASE, CONVERGENCE_WINDOW, FLAG, cell_flagged
+from benchmark.fit_diagnostics import (BACKWARDS_DEG, CONVERGED_MAX_DECREASE, CONVERGENCE_WINDOW, FLAG, MISORIENTED_DEG,
+                                      cell_flagged)
 from benchmark.results import atomic_write_json, atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -223,9 +224,10 @@ def _diagnostics_section(rows: list, labels: list[str]) -> list[str]:
     lines = ["", "## Fit diagnostics", "",
              f"Per cell: backwards fits (mean facing error > {BACKWARDS_DEG:g}°) / unconverged fits (data term still "
              f"falling by more than {CONVERGED_MAX_DECREASE:.0%} over the last {CONVERGENCE_WINDOW:.0%} of the steps) / "
-             "sequences, then the mean root-orientation error over the output frames. "
-             f"{FLAG} in the tables above marks a cell with a backwards or unconverged fit: its number measures a fit "
-             "failure as much as the prior.", "",
+             "sequences, then the mean root-orientation error over the output frames, and the count of misoriented fits "
+             f"(mean root-orientation error > {MISORIENTED_DEG:g}°: backwards, or facing the right way upside down) where "
+             f"there is one. {FLAG} in the tables above marks a cell with a backwards, misoriented or unconverged fit: its "
+             "number measures a fit failure as much as the prior.", "",
              "| Prior | " + " | ".join(labels) + " |", "|:--|" + "--:|" * len(labels)]
     for row in rows:
         out = []
@@ -237,6 +239,8 @@ def _diagnostics_section(rows: list, labels: list[str]) -> list[str]:
             text = f"{d['backwards']}/{d['not_converged']}/{d['sequences']}"
             if d.get("root_err_deg") is not None:
                 text += f", {d['root_err_deg']:.0f}°"
+            if d.get("misoriented"):
+                text += f", {d['misoriented']} misoriented"
             out.append(f"**{text}** {FLAG}" if cell_flagged(d) else text)
         lines.append(f"| {row['prior']} | " + " | ".join(out) + " |")
     return lines

@@ -70,11 +70,14 @@ def _row(backwards=False, converged=True, root=5.0):
 
 def test_cell_diagnostics_count_and_flag():
     d = cell_diagnostics([_row(), _row(backwards=True, root=170.0), _row(converged=False)])
-    assert d["sequences"] == 3 and d["backwards"] == 1 and d["not_converged"] == 1
+    assert d["sequences"] == 3 and d["backwards"] == 1 and d["not_converged"] == 1 and d["misoriented"] == 1
     assert d["root_err_deg_max"] == 170.0 and d["root_err_deg"] == pytest.approx((5 + 170 + 5) / 3)
     assert cell_flagged(d)
     assert not cell_flagged(cell_diagnostics([_row(), _row()]))
     assert cell_diagnostics([{"id": "s", "frames": 1, "sums": {}}]) is None
+    upside_down = _row(root=176.0)  # facing the right way, root turned over: misoriented, not backwards
+    d = cell_diagnostics([upside_down])
+    assert d["backwards"] == 0 and d["misoriented"] == 1 and cell_flagged(d)
 
 
 def test_markdown_marks_flagged_cells_and_lists_diagnostics():
@@ -89,7 +92,7 @@ def test_markdown_marks_flagged_cells_and_lists_diagnostics():
     md = format_markdown(table)
     assert f"| p | 20.0 ± 0.0 | 90.0 ± 0.0 {FLAG} |" in md
     assert "## Fit diagnostics" in md
-    assert "| p | 0/0/1, 5° | **1/0/1, 170°** ⚠ |" in md
+    assert "| p | 0/0/1, 5° | **1/0/1, 170°, 1 misoriented** ⚠ |" in md
 
 
 def test_fit_check_verdicts():
