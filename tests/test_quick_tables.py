@@ -1,6 +1,6 @@
 """Regression of the committed default-profile (quick) reference tables, ``results/<table>.quick.json``.
 
-Slow (a full quick table1 takes 1.5-2.5 hours on 2 CPU cores), so behind the ``slow`` marker:
+Slow (the quick table1 of protocol v2 takes about an hour on 2 CPU cores with --jobs 2, sls about as long), so behind the ``slow`` marker:
 ``python -m pytest -m slow tests/test_quick_tables.py`` re-runs every table's quick profile with its
 spec's ``default_priors`` and compares it with the committed table; ``--update-goldens`` rewrites
 the committed JSON and Markdown instead (refused under CI). Set ``BENCHMARK_RUNS_DIR`` to a folder
