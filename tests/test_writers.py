@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from benchmark.catalog import load_table_spec
 from benchmark.results import derive_table
 from benchmark.writers import format_csv, format_latex, format_markdown, metric_label, write_table
 from fake_units import FakeExecutor, meta, plan, table_spec
@@ -33,7 +34,7 @@ def test_markdown_header_columns_arrows_and_footnotes(table):
     lines = md.splitlines()
     assert lines[0] == "# Spatio-temporal completion of point-cloud sequences (Marsot et al. 2022, Table 1)"
     assert "- profile `smoke`, sequences 2, steps 30, batch_sequences 2" in lines
-    assert "- table `table1`, protocol version 1 (completion)" in lines
+    assert f"- table `table1`, protocol version {load_table_spec('table1')['protocol_version']} (completion)" in lines
     assert "- device `cpu`" in lines and "- seed 0" in lines
     assert any(l.startswith("> **Warning.** Profile `smoke`") and "not comparable to the paper's" in l for l in lines)
     # headline first, each metric its own table, unit and direction in the heading
