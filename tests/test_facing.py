@@ -60,16 +60,17 @@ def test_fit_refuses_an_unknown_facing_rule(anny_body):
             generator=torch.Generator().manual_seed(0), device="cpu", facing="mirror")
 
 
-_SLOW = pytest.mark.slow  # the default suite covers one prior of each kind: per-frame, fixed-window, continuous
+_SLOW = pytest.mark.slow
 
 
-@pytest.mark.parametrize("prior", ["vposer-slerp", "sequential-primitives", "motion-dvae",
-                                   *(pytest.param(p, marks=_SLOW) for p in ("frequency-guided", "hmvae", "hmvae-trajectory",
+@pytest.mark.parametrize("prior", ["vposer-slerp", "sequential-primitives", "motion-dvae", "hmvae",
+                                   *(pytest.param(p, marks=_SLOW) for p in ("frequency-guided", "hmvae-trajectory",
                                                                              "structured-latent", "slerp"))])
 def test_every_prior_fits_through_the_facing_search(anny_body, prior):
     """Per-frame, fixed-window and continuous priors, with and without their own root orientation,
-    translation or heading: the facing search (protocol v2) selects one hypothesis per sequence and
-    the full fit continues from it, with a subsampled data term."""
+    translation or heading (protocol v2): the facing found on the observation is the prior's
+    starting facing, and the full fit continues from it (one prior of each kind in the default
+    suite, plus HM-VAE, whose own coarse search chose wrong yaws on the quick sequences)."""
     from benchmark.registry import make_adapter
 
     scans, _ = make_scans(anny_body, [_turned_walker(math.pi, frames=8), _turned_walker(0.5, frames=8)],
@@ -85,9 +86,11 @@ def test_every_prior_fits_through_the_facing_search(anny_body, prior):
     assert torch.allclose(torch.remainder(turned - target + math.pi, 2 * math.pi) - math.pi, torch.zeros(2), atol=1e-3)
     err = torch.remainder(target - torch.tensor([math.pi, 0.5]) + math.pi, 2 * math.pi) - math.pi
     assert (err.abs() <= math.pi / 4 + 1e-6).all(), log
-    # the per-prior coarse search and the full fit run for every kind of prior, with a subsampled data term
+    if prior not in ("vposer-slerp", "sequential-primitives", "motion-dvae"):
+        return  # the full fit below: one prior of each kind in the default suite
+    # the full fit continues from such a start for every kind of prior, here with a subsampled data term
     state, info = fit(adapter, anny_body, batch, steps=3, lr=0.03, lambda_prior=0.01,
-                      generator=torch.Generator().manual_seed(0), device="cpu", loss_vertices=300, facing="search",
+                      generator=torch.Generator().manual_seed(0), device="cpu", loss_vertices=300, facing="observation",
                       shape_lr_scale=10.0, points_per_step=100)
     assert len(info["facing_yaw_rad"]) == 2 and len(info["facing_scores_mm"][0]) == 8
     assert info["data_trace"].shape == (3, 2) and torch.isfinite(info["data_trace"]).all()
