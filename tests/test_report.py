@@ -102,7 +102,7 @@ def test_write_arrays_is_atomic_and_rejects_objects(tmp_path):
 def test_root_errors_flag_a_turned_fit():
     import roma
 
-    from benchmark.report.render import root_errors
+    from benchmark.fit_diagnostics import root_errors
 
     yaw = torch.tensor([0.0, 0.5, math.pi, 2.0])
     fit = roma.rotvec_to_rotmat(torch.stack([torch.zeros(4), yaw, torch.zeros(4)], -1)).double().numpy()

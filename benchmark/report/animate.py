@@ -6,7 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from benchmark.report.render import render_frames, root_errors, save_animation
+from benchmark.fit_diagnostics import root_errors
+from benchmark.report.render import render_frames, save_animation
 
 
 @dataclass

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from benchmark.fit_diagnostics import heading, root_errors  # noqa: F401  (re-exported)
 
 ERROR_MAX_MM = 200.0  # colour scale of per-vertex error: 0 .. ERROR_MAX_MM (clamped)
 VIEW_HEIGHT_M = 2.3  # metres shown vertically
