@@ -92,29 +92,21 @@ def _load_input(path: Path, args, body, spec: dict):
     return obs, t_start, window, motion, what
 
 
-def _yaw_forward(R: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) root rotations -> (..., 2) unit horizontal facing (the body's +z on the x-z plane)."""
-    f = R[..., :, 2]
-    h = torch.stack([f[..., 0], f[..., 2]], -1)
-    return h / h.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-
-
 def truth_diagnostics(body, rot, output, truth, abs_t: torch.Tensor) -> dict:
-    """MPJPE, root-orientation and facing errors of the output against the truth (degrees, mm)."""
+    """MPJPE, root-orientation and facing errors of the output against the truth (degrees, mm), the
+    figures of :func:`benchmark.fit_diagnostics.root_errors`."""
     import roma
 
+    from benchmark.fit_diagnostics import BACKWARDS_DEG, root_errors
     from benchmark.observations import ground_truth_at
 
     gt = ground_truth_at(body, [truth], abs_t[None].to(torch.float64))
     mpjpe = (output.joints[0].cpu() - gt.joints[0].cpu().to(output.joints.dtype)).norm(dim=-1).mean()
     R_gt = roma.rotvec_to_rotmat(truth.resample(abs_t).poses[:, 0].double())
-    R_fit = rot[0, :, 0].cpu().double()
-    geo = roma.rotmat_geodesic_distance(R_fit, R_gt) * 180.0 / math.pi
-    a, b = _yaw_forward(R_fit), _yaw_forward(R_gt)
-    facing = torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1, 1)))
+    geo, facing = root_errors(rot[0, :, 0].detach().cpu().double().numpy(), R_gt.numpy())
     return {"mpjpe_mm": float(mpjpe) * 1000.0, "root_orientation_err_deg_mean": float(geo.mean()),
             "facing_err_deg_mean": float(facing.mean()), "facing_err_deg_max": float(facing.max()),
-            "frames_facing_backwards": int((facing > 90).sum())}
+            "frames_facing_backwards": int((facing > BACKWARDS_DEG).sum())}
 
 
 def convergence(history: list[dict], data_trace) -> dict:

@@ -247,7 +247,7 @@ def test_pykdtree_backend_matches_scipy_reference_indices():
 def test_static_chamfer_equals_chamfer_loss(squared, reduction):
     """StaticChamfer (trees of b built once) returns chamfer_loss's value and gradient, bit for bit,
     at every call while a moves, with padding (NaN in the padding never leaks)."""
-    from benchmark.metrics.chamfer import StaticChamfer
+    from benchmark.metrics.static_chamfer import StaticChamfer
 
     a, b, al, bl = random_padded(5, n=4, p=120, q=90, dtype=torch.float32)
     static = StaticChamfer(b, bl)
@@ -265,7 +265,7 @@ def test_static_chamfer_equals_chamfer_loss(squared, reduction):
 
 
 def test_static_chamfer_errors():
-    from benchmark.metrics.chamfer import StaticChamfer
+    from benchmark.metrics.static_chamfer import StaticChamfer
 
     b = torch.randn(2, 10, 3)
     with pytest.raises(ValueError, match="shape"):
@@ -296,7 +296,8 @@ def test_pykdtree_results_do_not_depend_on_openmp_threads():
 def test_static_chamfer_sampled_points_are_unbiased():
     """StaticChamfer(b_sample=m): the points -> mesh mean over m points drawn with replacement is an
     unbiased estimate of the exact loss and of its gradient (the completion fit's points_per_step)."""
-    from benchmark.metrics.chamfer import StaticChamfer, chamfer_loss
+    from benchmark.metrics.chamfer import chamfer_loss
+    from benchmark.metrics.static_chamfer import StaticChamfer
 
     g = torch.Generator().manual_seed(0)
     a = torch.randn(3, 40, 3, generator=g, dtype=torch.float64).requires_grad_(True)

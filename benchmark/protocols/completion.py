@@ -32,7 +32,7 @@ import roma
 import torch
 
 from benchmark.interpolate import lerp_frames, slerp_frames
-from benchmark.metrics.chamfer import StaticChamfer
+from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.observations import PointCloudSequence
 from priors.base import Decoded, FitBatch, PriorAdapter
 
@@ -209,6 +209,16 @@ def _set_yaw(state: FitState, base_root, base_heading, yaw: torch.Tensor) -> Non
     state.root.copy_((Y @ R)[..., :2].flatten(-2))
 
 
+def parameter_groups(state: FitState, lr: float, shape_lr_scale: float = 1.0) -> list:
+    """The optimiser's parameters of ``state``: one group at ``lr``, or, with ``shape_lr_scale`` != 1,
+    the body shape in a group of its own at ``lr * shape_lr_scale`` (protocol v2's ``objective.shape_lr_scale``)."""
+    params = state.parameters()
+    if shape_lr_scale == 1.0:
+        return params
+    return [{"params": [p for p in params if p is not state.shape_param]},
+            {"params": [state.shape_param], "lr": lr * shape_lr_scale}]
+
+
 LOG_EVERY = 25  # optimisation history: the first, every 25th and the last step
 
 
@@ -293,11 +303,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         return (data + lambda_prior * prior).sum(), lambda: {"data_mm": float(data.detach().mean()),
                                                               "prior": float(prior.detach().mean())}
 
-    params = state.parameters()
-    if shape_lr_scale != 1.0:  # the body shape on its own learning rate
-        params = [{"params": [p for p in params if p is not state.shape_param]},
-                  {"params": [state.shape_param], "lr": lr * shape_lr_scale}]
-    history = optimise(adapter.name, params, steps, lr, lr_final_fraction, step_loss, callback=callback)
+    history = optimise(adapter.name, parameter_groups(state, lr, shape_lr_scale), steps, lr, lr_final_fraction, step_loss,
+                       callback=callback)
     data_trace = torch.stack(trace) if trace else torch.zeros(0, B)
     return state, {"history": history, "data_trace": data_trace, **facing_log}
 

@@ -109,11 +109,12 @@ import roma
 import torch
 
 from benchmark.degrade import degrade, fingerprint
-from benchmark.metrics.chamfer import StaticChamfer
+from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.observations import Landmarks, PointCloudSequence, ground_truth_at, sample_surface
 from benchmark.fit_diagnostics import sequence_diagnostics
-from benchmark.protocols.completion import FitState, apply_free_rigid, body_parameters, facing_search, init_state, optimise
-from benchmark.protocols.completion_unit import UnitData, evaluate, stable_seed
+from benchmark.protocols.completion import (FitState, apply_free_rigid, body_parameters, facing_search, init_state,
+                                              optimise, parameter_groups)
+from benchmark.protocols.completion_unit import UnitData, _loss_vertices, evaluate, stable_seed
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from benchmark.unit_arrays import ground_truth_pose
 from priors.base import FitBatch, PriorAdapter
@@ -528,11 +529,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
 
         return (data + lam * prior).sum(), log
 
-    params = state.parameters()
-    shape_lr_scale = float(objective.get("shape_lr_scale", 1.0))
-    if shape_lr_scale != 1.0:  # the body shape on its own learning rate (as table1 v2)
-        params = [{"params": [p for p in params if p is not state.shape_param]},
-                  {"params": [state.shape_param], "lr": lr * shape_lr_scale}]
+    params = parameter_groups(state, lr, float(objective.get("shape_lr_scale", 1.0)))  # as table1 v2
     history = optimise(adapter.name, params, steps, lr, lr_final, step_loss)
     return state, {"history": history, "terms": terms_used, "data_trace": torch.stack(trace) if trace else torch.zeros(0, B),
                    "weights": {k: weights.w[i].tolist() for i, k in enumerate(terms_used)}}
@@ -549,11 +546,6 @@ def na_reason(spec: dict, adapter) -> str | None:
         return None
     return (f"prior {getattr(adapter, 'name', '?')!r} has window kind {kind!r} and no decode_anchors: the sls protocol "
             f"decodes anchors through decode_anchors or completion.body_parameters ({', '.join(KNOWN_KINDS)})")
-
-
-def _loss_vertices(profile: dict) -> int | None:
-    value = profile.get("loss_vertices", "all")
-    return None if value in (None, "all") else int(value)
 
 
 def run_unit(unit, spec: dict, profile: dict, adapter, body, source: SlsData, device) -> dict:

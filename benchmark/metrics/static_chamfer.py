@@ -1,0 +1,158 @@
+"""The Chamfer loss against a fixed point set, called many times with a moving one (:class:`StaticChamfer`).
+
+A fit's observed points never move: their KD-trees are built once and shared by every step. Same
+values and gradients as :func:`benchmark.metrics.chamfer.chamfer_loss` (see its module for the
+definition and the backends).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from benchmark.metrics.chamfer import (
+    DEFAULT_EPS,
+    DEFAULT_MAX_TILE_ELEMENTS,
+    REDUCTIONS,
+    _clean_padding,
+    _directed_mean,
+    _indices,
+    _map_elements,
+    _prefix_mask,
+    _pykdtree,
+    _reduce,
+    build_tree,
+    chamfer_loss,
+    morton_order,
+    query_tree,
+    resolve_backend,
+    validate_lengths,
+    validate_points,
+)
+
+
+class StaticChamfer:
+    """:func:`chamfer_loss` ``(a, b)`` for a fixed ``b``, called many times with a changing ``a``.
+
+    An optimiser fits mesh vertices ``a`` to the same observed points ``b`` at every step: the
+    KD-trees on ``b`` (one per element) are built once here and shared by every call, and the
+    points of ``b`` are queried against ``a``'s tree in a cached Morton order (as are the rows of
+    ``a``, in the order of the first call's positions). Every call returns exactly what
+    ``chamfer_loss(a, b, a_lengths, b_lengths, squared=..., eps=..., reduction=...)`` returns with
+    the KD-tree backend (same nearest neighbours, same value and gradient); on a non-CPU device,
+    or where pykdtree is not installed, it simply calls :func:`chamfer_loss`.
+
+    Args:
+        b: (N, Q, 3) padded points, metres (no gradient flows to them).
+        b_lengths: (N,) long valid-prefix lengths or None (all valid).
+    """
+
+    def __init__(self, b: torch.Tensor, b_lengths: torch.Tensor | None = None):
+        caller = "StaticChamfer"
+        validate_points(b, "b", caller)
+        if b.shape[0] == 0:
+            raise ValueError(f"{caller}: empty batch (N = 0).")
+        self.bl = validate_lengths(b_lengths, "b_lengths", caller, b.shape[0], b.shape[1], b.device)
+        self.b, self.bmask = _clean_padding(b.detach(), self.bl, "b", caller)
+        self.b_lengths = b_lengths
+        self.cached = self.b.device.type == "cpu" and _pykdtree() is not None
+        self._a_order = None
+        if not self.cached:
+            return
+        b_np = self.b.to(torch.float64).numpy()
+        lengths = self.bl.tolist()
+        self._b_pts = [np.ascontiguousarray(b_np[n, : lengths[n]]) for n in range(b.shape[0])]
+        self._b_trees = _map_elements(lambda n: build_tree(self._b_pts[n]), b.shape[0])
+        self._b_order = [morton_order(pts) for pts in self._b_pts]
+        self._b_sorted = [np.ascontiguousarray(pts[o]) for pts, o in zip(self._b_pts, self._b_order)]
+
+    def indices(self, a: torch.Tensor, al: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """(idx a->b (N, P), idx b->a (N, Q)) long, -1 at padding, for clean (N, P, 3) ``a``."""
+        a_np = a.detach().to(torch.float64).numpy()
+        n_batch, p = a_np.shape[:2]
+        if self._a_order is None or len(self._a_order) != n_batch or any(
+                o.shape[0] != al[n] for n, o in enumerate(self._a_order)):
+            self._a_order = [morton_order(a_np[n, : al[n]]) for n in range(n_batch)]
+        idx_ab = np.full((n_batch, p), -1, dtype=np.int64)
+        idx_ba = np.full((n_batch, self.b.shape[1]), -1, dtype=np.int64)
+
+        def run(n: int) -> None:
+            pa = a_np[n, : al[n]]
+            oa, ob = self._a_order[n], self._b_order[n]
+            idx_ab[n, oa] = query_tree(self._b_trees[n], np.ascontiguousarray(pa[oa]))[1]
+            idx_ba[n, ob] = query_tree(build_tree(pa), self._b_sorted[n])[1]
+
+        _map_elements(run, n_batch)
+        return torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
+
+    def sample_b(self, m: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N, min(m, Q), 3) points of ``b`` drawn uniformly with replacement from each element's valid
+        prefix, and their (N,) lengths: an unbiased sample for the mean over ``b`` of any function."""
+        m = min(int(m), self.b.shape[1])
+        u = torch.rand(self.b.shape[0], m, generator=generator, dtype=torch.float64)
+        idx = (u * self.bl.to(torch.float64)[:, None]).long().clamp_max(self.bl[:, None] - 1).to(self.b.device)
+        return torch.gather(self.b, 1, idx[..., None].expand(-1, -1, 3)), torch.full_like(self.bl, m)
+
+    def __call__(self, a: torch.Tensor, a_lengths: torch.Tensor | None = None, squared: bool = False,
+                 reduction: str = "none", eps: float = DEFAULT_EPS, b_sample: int | None = None,
+                 generator: torch.Generator | None = None) -> torch.Tensor:
+        """The Chamfer loss of ``a`` (N, P, 3) against the fixed ``b``; see :func:`chamfer_loss`.
+
+        ``b_sample``: where an element of ``b`` has more points than that, the ``b -> a`` mean is
+        taken over ``b_sample`` of its points drawn uniformly with replacement (:meth:`sample_b`,
+        ``generator``): an unbiased estimate of the exact mean, with an unbiased gradient. The
+        ``a -> b`` direction stays exact (every point of ``b``).
+        """
+        if b_sample is not None and int(b_sample) < int(self.bl.max()):
+            return self._sampled(a, a_lengths, squared, reduction, eps, int(b_sample), generator)
+        if not self.cached:
+            return chamfer_loss(a, self.b, a_lengths, self.b_lengths, squared=squared, reduction=reduction, eps=eps)
+        caller = "StaticChamfer"
+        if reduction not in REDUCTIONS:
+            raise ValueError(f"{caller}: `reduction` must be one of {REDUCTIONS}; got {reduction!r}.")
+        if not eps >= 0:
+            raise ValueError(f"{caller}: `eps` must be >= 0; got {eps!r}.")
+        validate_points(a, "a", caller)
+        if a.shape[0] != self.b.shape[0] or a.device != self.b.device or a.dtype != self.b.dtype:
+            raise ValueError(
+                f"{caller}: `a` must have the batch size, device and dtype of the fixed points "
+                f"({self.b.shape[0]}, {self.b.device}, {self.b.dtype}); got {a.shape[0]}, {a.device}, {a.dtype}."
+            )
+        al = validate_lengths(a_lengths, "a_lengths", caller, a.shape[0], a.shape[1], a.device)
+        a, amask = _clean_padding(a, al, "a", caller)
+        idx_ab, idx_ba = self.indices(a, al.tolist())
+        value = 0.5 * (_directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
+                       + _directed_mean(self.b, a, idx_ba, self.bmask, self.bl, squared, eps))
+        return _reduce(value, reduction)
+
+
+    def _sampled(self, a, a_lengths, squared, reduction, eps, m, generator):
+        caller = "StaticChamfer"
+        if reduction not in REDUCTIONS:
+            raise ValueError(f"{caller}: `reduction` must be one of {REDUCTIONS}; got {reduction!r}.")
+        validate_points(a, "a", caller)
+        al = validate_lengths(a_lengths, "a_lengths", caller, a.shape[0], a.shape[1], a.device)
+        a, amask = _clean_padding(a, al, "a", caller)
+        bs, bsl = self.sample_b(m, generator)
+        bsmask = _prefix_mask(bsl, bs.shape[1])
+        if self.cached:
+            a_np = a.detach().to(torch.float64).numpy()
+            bs_np = bs.to(torch.float64).numpy()
+            lens = al.tolist()
+            idx_ab = np.full(a_np.shape[:2], -1, dtype=np.int64)
+            idx_ba = np.empty(bs_np.shape[:2], dtype=np.int64)
+
+            def run(n: int) -> None:
+                pa = np.ascontiguousarray(a_np[n, : lens[n]])
+                idx_ab[n, : lens[n]] = query_tree(self._b_trees[n], pa)[1]
+                idx_ba[n] = query_tree(build_tree(pa), np.ascontiguousarray(bs_np[n]))[1]
+
+            _map_elements(run, a_np.shape[0])
+            idx_ab, idx_ba = torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
+        else:
+            backend = resolve_backend("auto", a.device)
+            idx_ab = _indices(a.detach(), self.b, al, self.bl, backend, DEFAULT_MAX_TILE_ELEMENTS, both=False)[0]
+            idx_ba = _indices(bs, a.detach(), bsl, al, backend, DEFAULT_MAX_TILE_ELEMENTS, both=False)[0]
+        value = 0.5 * (_directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
+                       + _directed_mean(bs, a, idx_ba, bsmask, bsl, squared, eps))
+        return _reduce(value, reduction)
