@@ -115,6 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
     from benchmark.fit_check import add_fit_check_command
 
     add_fit_check_command(sub)
+    from benchmark.error_breakdown import add_error_breakdown_command
+
+    add_error_breakdown_command(sub)
     from benchmark.train_report import add_train_report_command
 
     add_train_report_command(sub)

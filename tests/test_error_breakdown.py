@@ -1,0 +1,66 @@
+"""python -m benchmark error-breakdown: the MPJPE split of completion units, on motions with known errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+from benchmark.error_breakdown import FIGURES, format_rows, run_breakdown
+from benchmark.unit_arrays import write_arrays
+
+
+def _unit(tmp_path, name, fit_trans_offset, offset_frames, arm_bend=0.0, spec_hash="h0"):
+    """One unit of 2 sequences x 6 output frames at 30 fps, observed at frames 0 and 3: the fit is the
+    ground truth moved by ``fit_trans_offset`` (m, along x) at ``offset_frames`` and with the left
+    elbow bent by ``arm_bend`` (rad) everywhere."""
+    B, T = 2, 6
+    ident = np.zeros((B, T, 22, 4), dtype=np.float32)
+    ident[..., 3] = 1.0
+    fit = ident.copy()
+    if arm_bend:
+        fit[:, :, 18] = [0.0, np.sin(arm_bend / 2), 0.0, np.cos(arm_bend / 2)]
+    gt_trans = np.zeros((B, T, 3), dtype=np.float32)
+    gt_trans[..., 1] = 1.0
+    fit_trans = gt_trans.copy()
+    fit_trans[:, offset_frames, 0] += fit_trans_offset
+    t = np.broadcast_to(np.arange(T, dtype=np.float32) / 30.0, (B, T)).copy()
+    arrays = {"format": np.array(1), "spec_hash": np.array(spec_hash), "sequence_ids": np.array(["a", "b"]),
+              "t": t, "fit_quat": fit, "fit_trans": fit_trans, "fit_shape": np.full((B, 6), 0.5, np.float32),
+              "gt_quat": ident, "gt_trans": gt_trans, "gt_shape": np.full((B, 6), 0.5, np.float32),
+              "obs_t": np.broadcast_to(np.array([0.0, 0.1], np.float32), (B, 2)).copy()}
+    units = tmp_path / "units"
+    units.mkdir(exist_ok=True)
+    write_arrays(units / f"{name}.npz", arrays)
+    (units / f"{name}.json").write_text(json.dumps({"unit_id": name, "spec_hash": "h0", "prior": name.split("__")[0],
+                                                    "cell": {"points": 100, "fps": 10}, "sequence_ids": ["a", "b"]}))
+
+
+def test_error_breakdown_splits_position_frames_and_parts(tmp_path, anny_body):
+    # moved by 10 cm between the observed frames only (frames 1, 2, 4, 5): 10 cm there, 0 at frames 0 and 3
+    _unit(tmp_path, "moved__c", 0.1, [1, 2, 4, 5])
+    # right pose and place everywhere but a bent left elbow: only the left wrist (and hand) err
+    _unit(tmp_path, "bent__c", 0.0, [], arm_bend=1.0)
+    rows = {r["prior"]: r for r in run_breakdown(tmp_path, anny_body)}
+    moved, bent = rows["moved"], rows["bent"]
+    assert moved["sequences"] == 2 and set(FIGURES) <= set(moved)
+    assert moved["observed_mm"] == pytest.approx(0.0, abs=1e-3)
+    assert moved["between_mm"] == pytest.approx(100.0, abs=1e-2)
+    assert moved["mpjpe_mm"] == pytest.approx(100.0 * 4 / 6, abs=1e-2)
+    assert moved["pelvis_mm"] == pytest.approx(100.0 * 4 / 6, abs=1e-2)
+    assert moved["aligned_mm"] == pytest.approx(0.0, abs=1e-3)
+    assert bent["pelvis_mm"] == pytest.approx(0.0, abs=1e-4)
+    assert bent["arms_mm"] > 5.0 and bent["legs_mm"] == pytest.approx(0.0, abs=1e-4)
+    assert bent["torso_mm"] == pytest.approx(0.0, abs=1e-4)
+    assert bent["aligned_mm"] == pytest.approx(bent["mpjpe_mm"], abs=1e-4)
+    assert "moved" in format_rows(list(rows.values()))
+    assert [r["prior"] for r in run_breakdown(tmp_path, anny_body, priors=["bent"])] == ["bent"]
+
+
+def test_error_breakdown_refuses_what_it_cannot_read(tmp_path, anny_body):
+    with pytest.raises(FileNotFoundError, match="no units/ folder"):
+        run_breakdown(tmp_path, anny_body)
+    _unit(tmp_path, "stale__c", 0.1, [1], spec_hash="other")
+    with pytest.raises(ValueError, match="another specification"):
+        run_breakdown(tmp_path, anny_body)
+    with pytest.raises(ValueError, match="no completion unit"):
+        run_breakdown(tmp_path, anny_body, priors=["absent"])
