@@ -98,7 +98,7 @@ def run_breakdown(run_dir, body, priors: list[str] | None = None) -> list[dict]:
         if "gt_quat" not in arrays:
             skipped.append(js.name)
             continue
-        key = (unit["prior"], tuple(sorted((unit.get("cell") or {}).items())))
+        key = (unit["prior"], tuple((unit.get("cell") or {}).items()))
         for name, (total, frames) in unit_errors(body, arrays).items():
             sums[key][name] += float(total.sum())
             sums[key][name + "/frames"] += float(frames.sum())
@@ -120,7 +120,8 @@ def run_breakdown(run_dir, body, priors: list[str] | None = None) -> list[dict]:
 def format_rows(rows: list[dict]) -> str:
     """A plain-text table of :func:`run_breakdown`'s rows."""
     def cell_name(c):
-        return "/".join(f"{v:g}" if isinstance(v, float) else str(v) for _, v in sorted(c.items())) or "-"
+        keys = [k for k in ("points", "fps") if k in c] + sorted(k for k in c if k not in ("points", "fps"))
+        return "/".join(f"{c[k]:g}" if isinstance(c[k], float) else str(c[k]) for k in keys) or "-"
 
     head = ["prior", "cell", "seq"] + [f.replace("_mm", "") for f in FIGURES]
     lines = [head]
