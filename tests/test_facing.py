@@ -95,3 +95,31 @@ def test_every_prior_fits_through_the_facing_search(anny_body, prior):
     assert len(info["facing_yaw_rad"]) == 2 and len(info["facing_scores_mm"][0]) == 8
     assert info["data_trace"].shape == (3, 2) and torch.isfinite(info["data_trace"]).all()
     assert state.shape_param.shape[0] == 2
+
+
+def test_observation_facing_is_searched_once_per_observation(anny_body, monkeypatch):
+    """Every prior of a cell sees the same observation: the prior-free facing search runs once per
+    observation and process, and the result served again is bit for bit the one computed afresh."""
+    from benchmark.protocols import completion
+
+    scans, _ = make_scans(anny_body, [_turned_walker(math.pi, frames=6)], fps=10.0, num_points=120, seed=0)
+    batch = observation_batch(scans, 0.6, (torch.arange(4, dtype=torch.float64) / 6.0)[None], "cpu")
+    other, _ = make_scans(anny_body, [_turned_walker(0.5, frames=6)], fps=10.0, num_points=120, seed=0)
+    batch2 = observation_batch(other, 0.6, (torch.arange(4, dtype=torch.float64) / 6.0)[None], "cpu")
+    calls = []
+    real = completion.facing_search
+    monkeypatch.setattr(completion, "facing_search", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(completion, "_FACING_CACHE", completion.OrderedDict())
+    args = dict(device="cpu", lr=0.03, lambda_prior=0.01)
+    yaw1, log1 = completion.observation_facing(anny_body, batch, torch.Generator().manual_seed(0), **args)
+    g = torch.Generator().manual_seed(5)
+    state = g.get_state()
+    yaw2, log2 = completion.observation_facing(anny_body, batch, g, **args)
+    assert len(calls) == 1 and torch.equal(yaw1, yaw2) and log1 == log2
+    assert torch.equal(g.get_state(), state)  # a served result draws nothing, as the search itself
+    completion.observation_facing(anny_body, batch2, g, **args)  # another observation: searched
+    completion.observation_facing(anny_body, batch, g, lr=0.02, lambda_prior=0.01, device="cpu")  # another lr
+    assert len(calls) == 3
+    monkeypatch.setattr(completion, "_FACING_CACHE", completion.OrderedDict())
+    yaw3, log3 = completion.observation_facing(anny_body, batch, torch.Generator().manual_seed(0), **args)
+    assert len(calls) == 4 and torch.equal(yaw1, yaw3) and log1 == log3
