@@ -189,6 +189,17 @@ class PriorAdapter(torch.nn.Module):
         raise NotImplementedError
 
     # -- optional -------------------------------------------------------------------------
+    def mean_latents(self, batch: FitBatch) -> dict[str, torch.Tensor] | None:
+        """The prior's mean latents for a batch (same keys and shapes as :meth:`init_latents`), for
+        priors whose :meth:`init_latents` draws a random sample of the prior; None (the default)
+        where the initialisation is already deterministic (an encoder's output, a rest pose).
+
+        table1 protocol v3 (``objective.latent_init: mean``) starts such priors here: a deterministic
+        start, as ``no-prior``'s T-pose is, instead of one random draw (PROTOCOL.md's "a random
+        sample from the prior"), whose luck the tables would otherwise measure.
+        """
+        return None
+
     def encode_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor) -> dict[str, torch.Tensor]:
         """Latents of whole motions, for priors with an encoder (``has_encoder = True``).
 

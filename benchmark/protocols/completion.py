@@ -136,13 +136,31 @@ def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
         raise ValueError(f"prior {adapter.name!r}: decode returned trans {tuple(dec.trans.shape)}, expected {(B, T, 3)}")
 
 
+def initial_latents(adapter: PriorAdapter, batch: FitBatch, generator: torch.Generator,
+                    latent_init: str = "sample") -> dict[str, torch.Tensor]:
+    """A fit's starting latents: ``latent_init="sample"`` (table1 v1-v2, PROTOCOL.md): the adapter's
+    ``init_latents`` (a random prior sample, or a deterministic encoder output); ``"mean"`` (table1
+    v3): the prior's mean (``mean_latents``) where the adapter's start is a random sample, else its
+    ``init_latents`` (deterministic already)."""
+    if latent_init not in LATENT_INITS:
+        raise ValueError(f"latent_init {latent_init!r}: choose one of {', '.join(LATENT_INITS)}")
+    latents = adapter.mean_latents(batch) if latent_init == "mean" else None
+    return adapter.init_latents(batch, generator) if latents is None else latents
+
+
+LATENT_INITS = ("sample", "mean")
+
+
 def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device,
-               data_term: StaticChamfer | None = None, search_heading: bool = True) -> FitState:
+               data_term: StaticChamfer | None = None, search_heading: bool = True,
+               latent_init: str = "sample") -> FitState:
     """The initial state of a fit (see module docstring). ``data_term``: the Chamfer against
     ``batch``'s observed points (frames flattened), when the caller already built it.
-    ``search_heading``: run the 8-yaw T-pose search (protocol v1); False leaves the facing at +z."""
+    ``search_heading``: run the 8-yaw T-pose search (protocol v1); False leaves the facing at +z.
+    ``latent_init``: :func:`initial_latents`."""
     B, n = batch.batch_size, batch.num_observed
-    latents = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in adapter.init_latents(batch, generator).items()}
+    latents = {k: v.detach().to(device).clone().requires_grad_(True)
+               for k, v in initial_latents(adapter, batch, generator, latent_init).items()}
     bounded = body.name == "anny"
     default = body.default_shape(B).to(device)
     shape_param = (torch.logit(default.clamp(1e-4, 1 - 1e-4)) if bounded else default).clone().requires_grad_(True)
@@ -256,7 +274,7 @@ def optimise(prior_name: str, parameters, steps: int, lr: float, lr_final_fracti
 def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lambda_prior: float,
         generator: torch.Generator, device, lr_final_fraction: float = 0.1, loss_vertices: int | None = None,
         callback=None, facing: str = "heading8", shape_lr_scale: float = 1.0,
-        points_per_step: int | None = None) -> tuple[FitState, dict]:
+        points_per_step: int | None = None, latent_init: str = "sample") -> tuple[FitState, dict]:
     """Optimise one batch (see module docstring). Returns the state and a log: ``history`` (the
     logged steps), ``data_trace`` ((steps, B) the data term of every sequence at every step, mm)
     and, with ``facing="search"``, the facing search's choices.
@@ -274,6 +292,9 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     (:meth:`~benchmark.metrics.chamfer.StaticChamfer.sample_b`, seeded from ``generator``): an
     unbiased estimate of the exact data term and of its gradient. The mesh -> observed points
     direction always uses every observed point. None: the exact data term at every step.
+
+    ``latent_init``: where the prior's latents start (:func:`initial_latents`): ``"sample"`` (the
+    adapter's ``init_latents``) or ``"mean"`` (table1 protocol v3: the prior's mean).
     """
     subset = body.loss_vertex_indices(loss_vertices)
     if facing not in FACING_RULES:
@@ -283,11 +304,11 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     facing_log = {}
     t_facing = time.perf_counter()
     if facing == "search":
-        state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior)
+        state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)
     elif facing == "observation":
-        state, facing_log = observed_facing(adapter, body, batch, generator, device, lr, lambda_prior)
+        state, facing_log = observed_facing(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)
     else:
-        state = init_state(adapter, body, batch, generator, device, data_term=data_term)
+        state = init_state(adapter, body, batch, generator, device, data_term=data_term, latent_init=latent_init)
 
     trace = []  # (B,) data term of every step: the convergence diagnostics (benchmark.fit_diagnostics)
     sampler = None
@@ -352,7 +373,7 @@ def _data_term(state: FitState, body, batch: FitBatch, subset, chamfer: StaticCh
 
 
 def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device, lr: float,
-                  lambda_prior: float) -> tuple[FitState, dict]:
+                  lambda_prior: float, latent_init: str = "sample") -> tuple[FitState, dict]:
     """The initial state of a fit, with the facing direction found by a coarse multi-hypothesis fit.
 
     The same rule for every prior (protocol v2). Each sequence is tried at FACING_HYPOTHESES yaw
@@ -370,9 +391,9 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
     B = batch.batch_size
     K = FACING_HYPOTHESES
     small = _subset_batch(_repeat_batch(batch, K), FACING_POINTS)
-    hyp = init_state(adapter, body, small, generator, device, search_heading=False)
+    hyp = init_state(adapter, body, small, generator, device, search_heading=False, latent_init=latent_init)
     if hyp.root is None and hyp.heading is None:
-        return init_state(adapter, body, batch, generator, device, search_heading=False), {
+        return init_state(adapter, body, batch, generator, device, search_heading=False, latent_init=latent_init), {
             "facing": "none: the prior has no free root orientation or heading"}
     yaw = (2 * math.pi / K) * torch.arange(K, device=device, dtype=batch.points.dtype).repeat(B)
     with torch.no_grad():
@@ -396,7 +417,7 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
     pick = torch.arange(B, device=device) * K + best
     # the adapter's own per-batch state (e.g. the initial latents its prior term measures from)
     # must be the full batch's when the full fit starts: initialise it last
-    probe = init_state(adapter, body, batch, generator, device, search_heading=False)
+    probe = init_state(adapter, body, batch, generator, device, search_heading=False, latent_init=latent_init)
     state = _select(hyp, pick, probe)
     return state, {"facing_yaw_rad": [float(y) for y in yaw.view(B, K)[torch.arange(B), best]],
                    "facing_scores_mm": [[round(float(v), 3) for v in row] for row in scores]}
@@ -457,7 +478,7 @@ def observation_facing(body, batch: FitBatch, generator: torch.Generator, device
 
 
 def observed_facing(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device, lr: float,
-                    lambda_prior: float) -> tuple[FitState, dict]:
+                    lambda_prior: float, latent_init: str = "sample") -> tuple[FitState, dict]:
     """The initial state of a fit under table1 protocol v2: the prior's own initial state
     (:func:`init_state`, no heading search), turned about +y so that its mean heading over the
     observed frames is the observation's facing (:func:`observation_facing`).
@@ -469,7 +490,7 @@ def observed_facing(adapter: PriorAdapter, body, batch: FitBatch, generator: tor
     (per-frame priors) or to the free heading (priors that decode their own root orientation).
     """
     target, log = observation_facing(body, batch, generator, device, lr, lambda_prior)
-    state = init_state(adapter, body, batch, generator, device, search_heading=False)
+    state = init_state(adapter, body, batch, generator, device, search_heading=False, latent_init=latent_init)
     if state.root is None and state.heading is None:
         return state, {"facing": "none: the prior has no free root orientation or heading"}
     with torch.no_grad():

@@ -310,7 +310,7 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     state, info = fit(adapter, body, batch, steps=int(profile["steps"]), lr=float(obj["lr"]),
                       lambda_prior=float(obj["lambda_prior"]), generator=g, device=device,
                       loss_vertices=_loss_vertices(profile), facing=facing_rule(table_spec),
-                      shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)))
+                      shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(table_spec))
     t1 = time.perf_counter()
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
     sp = profile.get("surface_points", "all")
@@ -348,6 +348,11 @@ FACING_LOG = ("facing_yaw_rad", "facing_scores_mm")  # what the facing search lo
 def facing_rule(spec: dict) -> str:
     """How a fit finds the facing direction (``objective.facing``; protocol version 1: ``heading8``)."""
     return str(spec["objective"].get("facing", "heading8"))
+
+
+def latent_init_rule(spec: dict) -> str:
+    """Where the priors' latents start (``objective.latent_init``; protocol versions 1-2: ``sample``)."""
+    return str(spec["objective"].get("latent_init", "sample"))
 
 
 def unit_ground_truth_pose(data_source: CompletionData, sequence_ids, data: UnitData):

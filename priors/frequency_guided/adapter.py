@@ -88,6 +88,11 @@ class FrequencyGuidedPrior(PriorAdapter):
         z = torch.randn((batch.batch_size, n, self.latent_dim), generator=generator, device=generator.device, dtype=torch.float32)
         return {"z": z.to(self.device)}
 
+    def mean_latents(self, batch: FitBatch) -> dict[str, torch.Tensor]:
+        """``{"z": zeros (B, n_windows, L)}``: the mean of the N(0, I) prior."""
+        n = n_windows_for(batch.window_s, self.frames, self.window.fps)
+        return {"z": torch.zeros((batch.batch_size, n, self.latent_dim), device=self.device)}
+
     def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B,) |z|^2 summed over the latent dims and over the windows."""
         return latents["z"].square().sum(dim=(-1, -2))

@@ -248,6 +248,11 @@ class HMVAEPrior(PriorAdapter):
             out[key] = z.to(self.device)
         return out
 
+    def mean_latents(self, batch: FitBatch) -> dict[str, torch.Tensor]:
+        """Zeros of the shapes :meth:`init_latents` draws: the mean of the N(0, I) priors."""
+        n = num_windows(batch.window_s)
+        return {key: torch.zeros((batch.batch_size, n, *shape), device=self.device) for key, shape in self.latent_shapes.items()}
+
     def _check_latents(self, latents: dict) -> tuple[torch.Tensor, torch.Tensor]:
         for key, shape in self.latent_shapes.items():
             if key not in latents:

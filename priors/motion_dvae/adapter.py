@@ -125,6 +125,17 @@ class MotionDVAEPrior(PriorAdapter):
             z = self.net.sample_prior(x0, T - 1, generator=generator)
         return {"x0": x0, "z": z}
 
+    def mean_latents(self, batch: FitBatch) -> dict[str, torch.Tensor]:
+        """x0 = the training mean first-frame state; z = the learned prior's mean path: the ancestral
+        pass of :meth:`init_latents` with every step at its conditional mean (temperature 0)."""
+        T = _grid_frames(batch.window_s, self.window.frames, self.window.fps)
+        with torch.no_grad():
+            x0 = self.net.x0_mean.expand(batch.batch_size, -1).clone()
+            # temperature 0: z_t = the conditional mean (the noise drawn is multiplied by 0; a private
+            # generator keeps the global random state untouched)
+            z = self.net.sample_prior(x0, T - 1, generator=torch.Generator(x0.device).manual_seed(0), temperature=0.0)
+        return {"x0": x0, "z": z}
+
     def _check_latents(self, latents: dict, where: str):
         if "x0" not in latents or "z" not in latents:
             raise ValueError(f"motion-dvae.{where}: latents must hold 'x0' (B, {STATE_DIM}) and 'z' (B, T-1, {self.z_dim}); "

@@ -104,6 +104,12 @@ class StructuredLatentPrior(PriorAdapter):
         window = torch.full((B, 1), float(batch.window_s), dtype=torch.float32)
         return {"z": z.to(self.device), "window_s": window.to(self.device)}
 
+    def mean_latents(self, batch: FitBatch) -> dict[str, torch.Tensor]:
+        """z = 0 (the mean of the N(0, I) prior) and the window duration, as ``init = "zero"``."""
+        B = batch.batch_size
+        window = torch.full((B, 1), float(batch.window_s), dtype=torch.float32)
+        return {"z": torch.zeros(B, self.latent_dim, device=self.device), "window_s": window.to(self.device)}
+
     def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B,) |z|^2."""
         return latents["z"].square().sum(-1)

@@ -65,6 +65,10 @@ class VPoserSlerp(PriorAdapter):
         z = torch.randn(shape, generator=generator, device=generator.device, dtype=torch.float32)
         return {"z": z.to(self.device)}
 
+    def mean_latents(self, batch: FitBatch) -> dict[str, torch.Tensor]:
+        """``{"z": zeros (B, n_observed, L)}``: the mean of the N(0, I) prior (the mean pose)."""
+        return {"z": torch.zeros((batch.batch_size, batch.num_observed, self.latent_dim), device=self.device)}
+
     def decode(self, latents: dict[str, torch.Tensor], timestamps: torch.Tensor, shape: torch.Tensor | None = None) -> Decoded:
         """z (B, n, L) at their own timestamps (B, n) -> rotations (B, n, 22, 3, 3), root identity."""
         z = latents["z"]
