@@ -336,3 +336,23 @@ def test_contact_points_from_the_embedded_body(anny_body):
     fm = foot_metrics([m], body=anny_body)
     assert fm["worst_floor_penetration"] < 0.01
     assert fm["median_stance_foot_speed"] < 0.05
+
+
+def test_body_skeleton_does_not_depend_on_the_thread_count(anny_body):
+    """The splits are keyed by the skeleton's bits: a process on two threads and a worker on one must
+    compute the same skeleton, or each rebuilds the other's split (seen: 1.9e-7 m apart)."""
+    import torch
+
+    from benchmark.synthetic.rest import BodySkeletons
+    from benchmark.synthetic.splits import _skeleton_digest
+
+    threads = torch.get_num_threads()
+    digests = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            digests.append(_skeleton_digest("test", 0, BodySkeletons(anny_body)))
+    finally:
+        torch.set_num_threads(threads)
+    assert digests[0] == digests[1]
+    assert torch.get_num_threads() == threads

@@ -348,9 +348,19 @@ class BodySkeletons:
         self._cache: dict = {}
 
     def rest_skeleton(self, phenotype) -> RestSkeleton:
+        """The skeleton of the body at ``phenotype``, computed on one torch thread whatever the
+        caller's count: a CPU matrix product's bits depend on the thread count (up to 2e-7 m here),
+        and the synthetic splits are keyed by these bits (``skeleton_digest``), so a process on two
+        threads and a worker on one would otherwise rebuild each other's split and see motions
+        that differ in their last bits."""
         key = tuple(round(float(x), 9) for x in phenotype)
         if key not in self._cache:
-            self._cache[key] = RestSkeleton.from_body(self.body, torch.tensor(key), source=self.name)
+            threads = torch.get_num_threads()
+            torch.set_num_threads(1)
+            try:
+                self._cache[key] = RestSkeleton.from_body(self.body, torch.tensor(key), source=self.name)
+            finally:
+                torch.set_num_threads(threads)
         return self._cache[key]
 
 
