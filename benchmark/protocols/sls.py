@@ -483,10 +483,12 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
     batch = FitBatch(points=init_pts, lengths=torch.full((B, n), init_pts.shape[2], dtype=torch.long, device=device),
                      timestamps=obs_t, window_s=float(anchor_t[:, -1].max()), output_timestamps=anchor_t)
     facing = str(objective.get("facing", "heading8"))
+    latent_init = str(objective.get("latent_init", "sample"))  # v3: "mean" (as table1 v3)
     if facing == "search":
-        state, _ = facing_search(adapter, body, batch, generator, device, lr, lam)
+        state, _ = facing_search(adapter, body, batch, generator, device, lr, lam, latent_init=latent_init)
     elif facing in ("heading8", "aligned"):  # aligned: start facing +z, as the data rules align every sequence
-        state = init_state(adapter, body, batch, generator, device, search_heading=facing == "heading8")
+        state = init_state(adapter, body, batch, generator, device, search_heading=facing == "heading8",
+                           latent_init=latent_init)
     else:
         raise ValueError(f"sls: unknown objective.facing {facing!r}; choose heading8 (protocol v1), aligned or search")
     subset = body.loss_vertex_indices(loss_vertices)
