@@ -17,6 +17,9 @@ VAE loss (official ``TwoHierSAVAEModel.forward``, ``configs/len64_no_aug_hm_vae.
     1 * MSE(6D) + 1 * MSE(rotation matrices) + 10 * MSE(FK joint positions, metres)
     + 0.003 * KL(z_g) + 0.003 * KL(z_l)
 
+with free bits on the deep code (``FREE_BITS_G`` nats per latent dimension, :func:`free_bits_kl`):
+without them the embedded run's deep code collapsed (KL(z_g) 0.0015 nats) once the shallow code was on.
+
 (MSE = mean over every element; KL = mean over batch x edges of the sum over latent dims.) For the
 first 20 % of the steps (official: 50k of 250k iterations) the shallow code and its KL are
 detached (deep-only phase). Training samples z with the reparameterisation; the validation loss
@@ -76,6 +79,12 @@ LR, FINAL_LR_RATIO, WEIGHT_DECAY = 1e-3, 0.1, 1e-4
 DEEP_ONLY_FRACTION = 50_000 / 250_000
 W_6D, W_ROT, W_POS, KL_G, KL_L = 1.0, 1.0, 10.0, 0.003, 0.003
 W_VEL, W_TRAJ = 1.0, 1.0
+# Free bits on the deep code (Kingma et al. 2016): the KL(z_g) term is sum over latent dims of
+# max(lambda, batch-mean KL of that dim), mean over the 7 deep edges, so the first lambda nats per
+# dimension are free. With the plain 0.003*KL(z_g) the deep code collapsed once the shallow code
+# (a skip path into the last decoder block) was switched on: KL(z_g) 2.5 nats per edge at the end
+# of the deep-only phase, 0.0015 at step 3000, everything carried by z_l.
+FREE_BITS_G = 0.25
 HAND_OFFSET_M = 0.09
 
 
@@ -132,9 +141,20 @@ def _default_data(frames: int, stride: int) -> tuple[torch.Tensor, torch.Tensor 
 
 
 # -- losses ----------------------------------------------------------------------------------
-def hmvae_loss(model: HMVAE, batch: torch.Tensor, rest24: torch.Tensor, deep_only: bool = False) -> dict:
-    """The official HM-VAE loss (module docstring) for windows (N, T, 69). In eval mode the
-    posterior means are decoded and the shallow code is never detached."""
+def free_bits_kl(mu: torch.Tensor, logvar: torch.Tensor, free_bits: float) -> torch.Tensor:
+    """KL(N(mu, e^logvar) || N(0, I)) with ``free_bits`` nats per latent dimension free: the batch-mean KL
+    of each (edge, dim), clamped below at ``free_bits``, summed over dims, mean over edges (the scale of
+    :func:`kl_normal`; equal to it when every dim is above the threshold)."""
+    kl = -0.5 * (1 + logvar - mu.square() - logvar.exp())  # (B, E, D)
+    return kl.mean(0).clamp_min(free_bits).sum(-1).mean()
+
+
+def hmvae_loss(model: HMVAE, batch: torch.Tensor, rest24: torch.Tensor, deep_only: bool = False,
+               free_bits_g: float = FREE_BITS_G) -> dict:
+    """The official HM-VAE loss (module docstring) for windows (N, T, 69), with ``free_bits_g`` nats per
+    dimension of the deep code free (:func:`free_bits_kl`; 0 is the official loss). In eval mode the
+    posterior means are decoded and the shallow code is never detached. ``kl_g`` / ``kl_l`` are the
+    plain KLs; ``kl_g_term`` is the deep KL as penalised."""
     rot, _ = windows_to_rotations(batch)
     sixd = matrix_to_sixd_columns(rot)
     with torch.no_grad():
@@ -147,11 +167,13 @@ def hmvae_loss(model: HMVAE, batch: torch.Tensor, rest24: torch.Tensor, deep_onl
     lrot = (rec_rot - rot).square().mean()
     lpos = (rec_pos - pos).square().mean()
     kl_g = kl_normal(out["mu_g"], out["logvar_g"])
+    kl_g_term = free_bits_kl(out["mu_g"], out["logvar_g"], free_bits_g) if free_bits_g > 0 else kl_g
     kl_l = kl_normal(out["mu_l"], out["logvar_l"])
     if deep_only and model.training:
         kl_l = kl_l.detach()
-    loss = W_6D * l6d + W_ROT * lrot + W_POS * lpos + KL_G * kl_g + KL_L * kl_l
-    return {"loss": loss, "mse_6d": l6d, "mse_rotmat": lrot, "mse_joints_m2": lpos, "kl_g": kl_g, "kl_l": kl_l}
+    loss = W_6D * l6d + W_ROT * lrot + W_POS * lpos + KL_G * kl_g_term + KL_L * kl_l
+    return {"loss": loss, "mse_6d": l6d, "mse_rotmat": lrot, "mse_joints_m2": lpos, "kl_g": kl_g, "kl_l": kl_l,
+            "kl_g_term": kl_g_term.detach()}
 
 
 def trajectory_statistics(windows: torch.Tensor, rest24: torch.Tensor, chunk: int = 512) -> dict:
@@ -240,7 +262,10 @@ def train_hmvae(out_dir=None, steps: int = VAE_STEPS, seed: int = 0, *, config: 
         "parameters": parameter_summary(model),
         "data": data_info,
         "rest_skeleton": rest_source,
-        "loss": f"{W_6D}*MSE(6D) + {W_ROT}*MSE(rotmat) + {W_POS}*MSE(FK joints, m) + {KL_G}*KL(z_g) + {KL_L}*KL(z_l)",
+        "loss": f"{W_6D}*MSE(6D) + {W_ROT}*MSE(rotmat) + {W_POS}*MSE(FK joints, m) + {KL_G}*KL_fb(z_g) + {KL_L}*KL(z_l)",
+        "free_bits_g": {"nats_per_dim": FREE_BITS_G,
+                        "kl_fb": "sum over the 24 dims of max(free_bits, batch-mean KL of the dim), mean over the 7 deep edges "
+                                 "(kl_g_term in the history; kl_g is the plain KL)"},
         "deep_only_steps": deep_steps,
         **training.loop_record(result, steps=steps, seed=seed, lr=lr, weight_decay=WEIGHT_DECAY,
                                final_lr_ratio=FINAL_LR_RATIO, batch_size=batch_size),

@@ -55,6 +55,21 @@ def _check_windows(w: torch.Tensor, what: str) -> torch.Tensor:
     return w.contiguous()
 
 
+# Training windows are 4 s (120 frames) and each training batch is cut to its first L frames, L drawn
+# from CROP_FRAMES with CROP_PROBS (torch's global RNG, restored on --resume). Trained on 1 s windows
+# only, the recurrent decoder (x_t = x_0 + sum of increments) was accurate for 1 s (reconstruction
+# MPJPE 31 mm on the test split) and drifted beyond it (170 mm at 2 s, 860 mm at 4 s: the root
+# overshoots by metres on running motions), while the tables use 2 s windows and completion 4 s.
+CROP_FRAMES = (30, 60, 120)
+CROP_PROBS = (0.2, 0.4, 0.4)
+
+
+def _crop(batch: torch.Tensor, lengths, probs) -> torch.Tensor:
+    """The first L frames of a batch of canonical pose windows (N, F, 69), L ~ ``lengths`` (capped at F)."""
+    i = int(torch.multinomial(torch.tensor(probs, dtype=torch.float32), 1))
+    return batch[:, : max(2, min(int(lengths[i]), batch.shape[1]))]
+
+
 def train_motion_dvae(
     out_dir: str | Path | None = None,
     steps: int = 1800,
@@ -62,16 +77,21 @@ def train_motion_dvae(
     seed: int = 0,
     *,
     config: dict | None = None,
-    batch_size: int = 64,
+    batch_size: int = 32,
     lr: float = 1e-3,
     denoise_lr: float = 1e-3,
     windows: torch.Tensor | None = None,
     val_windows: torch.Tensor | None = None,
     rest_joints: torch.Tensor | None = None,
-    frames: int = 30,
-    stride: int = 10,
+    frames: int = 120,
+    stride: int = 20,
+    crop_frames: tuple = CROP_FRAMES,
+    crop_probs: tuple = CROP_PROBS,
     log_every: int = 200,
     val_max_windows: int = 512,
+    init_weights: str | Path | None = None,
+    init_denoise: bool = False,
+    kl_anneal_fraction: float | None = None,
 ) -> tuple[MotionDVAE, dict]:
     """Train the embedded Motion-DVAE (phase 1: DVAE on clean windows; phase 2: denoising networks on
     noisy copies, prior and decoder frozen) and write ``motion_dvae.pt`` + ``motion_dvae.json``.
@@ -82,6 +102,10 @@ def train_motion_dvae(
     ``priors.training.train_loop`` is used (Adam, cosine decay to 0.1 lr, one thread); the paper
     (HuMoR settings) uses Adamax lr 1e-4 for 200 epochs, too slow for the embedded CPU budget.
     ``out_dir=None`` writes nothing. Returns (model in eval mode, record).
+
+    init_weights: a project checkpoint (``motion_dvae.pt``) whose DVAE (generative model, clean
+    encoder) and statistics buffers start phase 1 (a warm start; the denoising networks start fresh);
+    then the KL weight is 1 from the first step unless ``kl_anneal_fraction`` says otherwise.
     """
     cfg = dict(EMBEDDED_CONFIG, **(config or {}))
     data_info: dict = {}
@@ -122,15 +146,38 @@ def train_motion_dvae(
         for k, v in stats.items():
             getattr(model, k).copy_(v)
         model.rest_joints.copy_(torch.as_tensor(rest_joints, dtype=torch.float32))
+    init_info = None
+    if init_weights is not None:
+        import hashlib
+
+        from priors.motion_dvae.checkpoint import read_project_checkpoint
+
+        sd, init_cfg = read_project_checkpoint(Path(init_weights))
+        if {k: init_cfg[k] for k in ("z_dim", "hidden", "mlp_hidden")} != {k: cfg[k] for k in ("z_dim", "hidden", "mlp_hidden")}:
+            raise ValueError(f"init_weights {init_weights}: config {init_cfg} does not match {cfg}")
+        keep = ("gen_rnn.", "prior_mean.", "prior_logvar.", "decoder.", "dec_logvar", "encoder.", "state_mean", "state_std", "x0_mean")
+        if init_denoise:  # also the denoising networks (a continued denoising phase)
+            keep = keep + ("denoise_encoder.", "init_state.", "noise.")
+        part = {k: v.float() for k, v in sd.items() if k.startswith(keep)}
+        missing = [k for k in model.state_dict() if k.startswith(keep) and k not in part]
+        if missing:
+            raise ValueError(f"init_weights {init_weights}: missing {missing[:5]}")
+        model.load_state_dict(part, strict=False)
+        init_info = {"path": str(init_weights), "sha256": hashlib.sha256(Path(init_weights).read_bytes()).hexdigest(),
+                     "loaded": "generative model, clean encoder, state statistics (its own, not recomputed)"
+                               + (", denoising networks (continued)" if init_denoise else "")}
+    if kl_anneal_fraction is None:
+        kl_anneal_fraction = 0.0 if init_weights is not None else KL_ANNEAL_FRACTION
 
     # phase 1: the DVAE on clean canonical windows, KL annealing
-    anneal = max(1, int(KL_ANNEAL_FRACTION * steps))
+    anneal = max(1, int(kl_anneal_fraction * steps))
     counter = {"dvae": 0, "denoise": 0}
 
     def dvae_loss(m: MotionDVAE, batch: torch.Tensor) -> dict:
         if m.training:
+            batch = _crop(batch, crop_frames, crop_probs)
             counter["dvae"] += 1
-            beta = min(1.0, counter["dvae"] / anneal)
+            beta = min(1.0, counter["dvae"] / anneal) if kl_anneal_fraction > 0 else 1.0
         else:
             beta = 1.0
         with torch.no_grad():
@@ -146,24 +193,34 @@ def train_motion_dvae(
             p.requires_grad_(True)
     model.dec_logvar.requires_grad_(True)
     t0 = time.perf_counter()
-    r1 = training.train_loop(model, dvae_loss, poses, steps=steps, batch_size=batch_size, seed=seed, lr=lr,
-                             log_every=log_every, val_data=val_poses, val_batch=256)
+    if steps > 0:
+        r1 = training.train_loop(model, dvae_loss, poses, steps=steps, batch_size=batch_size, seed=seed, lr=lr,
+                                 log_every=log_every, val_data=val_poses, val_batch=256)
+    else:  # the DVAE of init_weights as it is (only the denoising phase is trained)
+        if init_weights is None:
+            raise ValueError("steps=0 (no DVAE phase) needs init_weights")
+        model.eval()
+        r1 = training.TrainResult(steps=0, wall_s=0.0, final_train=None,
+                                  final_val=training.evaluate(model, dvae_loss, val_poses, 256) if val_poses is not None else None)
     phase1_wall = time.perf_counter() - t0
 
     # phase 2: denoising networks on noisy copies; prior, decoder and clean encoder frozen
-    with torch.no_grad():
-        model.denoise_encoder.load_state_dict(model.encoder.state_dict())
+    if not (init_weights is not None and init_denoise):
+        with torch.no_grad():
+            model.denoise_encoder.load_state_dict(model.encoder.state_dict())
     for p in model.parameters():
         p.requires_grad_(False)
     for mod in (model.denoise_encoder, model.init_state, model.noise):
         for p in mod.parameters():
             p.requires_grad_(True)
     anneal2 = max(1, int(KL_ANNEAL_FRACTION * denoise_steps))
+    continued = init_weights is not None and init_denoise  # a continued denoising phase: no KL annealing
 
     def denoise_loss(m: MotionDVAE, batch: torch.Tensor) -> dict:
         if m.training:
+            batch = _crop(batch, crop_frames, crop_probs)
             counter["denoise"] += 1
-            beta, g = min(1.0, counter["denoise"] / anneal2), None
+            beta, g = (1.0 if continued else min(1.0, counter["denoise"] / anneal2)), None
         else:
             beta, g = 1.0, torch.Generator().manual_seed(seed + 1)
         with torch.no_grad():
@@ -188,13 +245,16 @@ def train_motion_dvae(
         "paper_parameters": MotionDVAE(**PAPER_CONFIG).parameter_counts(),
         "data": data_info,
         "rest_skeleton": rest_source,
+        "init_weights": init_info,
+        "windows": {"frames": frames, "stride": stride, "train_crops": {"frames": list(crop_frames), "probs": list(crop_probs)},
+                    "note": "each training batch is cut to its first L frames (L drawn per step); validation on whole windows"},
         "state": "138-D: trans, root aa, 21 body aa, finite-difference velocities x30; canonical first frame (HuMoR)",
         "phase_dvae": {
             "loss": f"Gaussian NLL of the standardised state (learned per-dim variance) + beta*KL(q||p) + {POINT_WEIGHT}*sum squared point errors (m^2; "
                     "22 FK joints + 44 virtual markers), per frame; beta 0->1 over the first "
-                    f"{KL_ANNEAL_FRACTION:.0%} of steps",
+                    f"{kl_anneal_fraction:.0%} of steps",
             "optimiser": {"name": "Adam (shared train_loop)", "lr": lr, "schedule": "cosine to 0.1*lr", "batch_size": batch_size},
-            "steps": steps, "train_wall_s": round(phase1_wall, 2), "s_per_step": round(r1.wall_s / steps, 4),
+            "steps": steps, "train_wall_s": round(phase1_wall, 2), "s_per_step": round(r1.wall_s / max(steps, 1), 4),
             "final_train": r1.final_train, "final_val": r1.final_val, "history": r1.history,
         },
         "phase_denoise": {
@@ -222,8 +282,11 @@ def main(argv: list[str] | None = None) -> None:
     """``python -m priors.motion_dvae.train --out priors/weights``: train the embedded weights."""
     ap = training.recipe_parser("Train the embedded Motion-DVAE on the synthetic training split.", DEFAULT_WEIGHTS, 1800)
     ap.add_argument("--denoise-steps", type=int, default=720)
+    ap.add_argument("--init", default=None, help="warm start phase 1 from this motion_dvae.pt (DVAE and statistics)")
+    ap.add_argument("--lr", type=float, default=1e-3, help="phase-1 learning rate")
     args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
-    _, rec = train_motion_dvae(args.out, steps=args.steps, denoise_steps=args.denoise_steps, seed=args.seed)
+    _, rec = train_motion_dvae(args.out, steps=args.steps, denoise_steps=args.denoise_steps, seed=args.seed,
+                               init_weights=args.init, lr=args.lr)
     print({k: rec[k] for k in ("train_wall_s", "checkpoint_bytes")})
 
 
