@@ -29,10 +29,14 @@ the decoder's last shared activation [inferred]) + 0.01 KL, lr 1e-3, batch 128 [
 phase 2 on "meshes" with GradNorm over (spatial, time) + 0.01 KL, lr 1e-4, batch 16 [no SMPL mesh
 is shipped: the mesh is stood in for by FK joints + 2 markers per joint on the subject's own rest
 skeleton]. Adam [inferred]. Data: one-cycle windows (0.3-3 s) of the synthetic train split cut
-with the generator's own phases (benchmark/synthetic/cycles.py), plus 4 s windows of arbitrary
-motion every 2 s [project extension, so that table1's 4 s windows are in distribution; so the
-timestamp scale tau_max is 4 s]. Default 3000 steps (2400 + 600): measured 0.29 s (phase 1) and
-0.19 s (phase 2) of CPU per step on one shared core, about 14 min (``train_embedded``).
+with the generator's own phases (benchmark/synthetic/cycles.py), plus 2 s and 4 s windows of
+arbitrary motion every 2 s [project extension, so that the reconstruction table's 2 s and table1's
+4 s windows are in distribution; so the timestamp scale tau_max is 4 s]. The translation's
+normalisation range is its mean +- 2 standard deviations (``trans_range_std``; None: the paper's
+min-max, 17-19 m wide on the synthetic split, which left the root 0.4-0.7 m off); KL weight 1e-3
+in phase 1 and 1e-4 in phase 2 (GradNorm drives the spatial weight to its 1e-3 floor, against
+which the paper's 0.01 made the KL dominate). Default 5000 steps (4500 + 500; train.py's
+docstring), about 15 min on one shared core (``train_embedded``).
 
 Adapter (adapter.py): window kind "continuous": the decoder's 100 anchors (predicted timestamps
 tau_hat) are spread affinely over the window [0, window_s] and SLERP / LERP-ed to any timestamps
