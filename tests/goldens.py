@@ -30,7 +30,12 @@ NOT_COMPARED = {"s_per_frame"}
 # cache differ) into MPJPE changes of up to 13.8 mm and PA-MPJPE changes of up to 7.9 mm (smoke
 # profile, two perturbation seeds and one fresh cache against the golden), while the 5- and 15-frame
 # gaps move by under 0.05 mm. A 3 mm tolerance there made CI pass or fail with the cache build.
-CHAOTIC = {("inbetween", "motion-dvae", "mpjpe_mm"): 20.0, ("inbetween", "motion-dvae", "pa_mpjpe_mm"): 12.0}
+# The embedded Motion-DVAE's table1 fit (smoke, 100 points / 5 fps, retrained weights of issue 13)
+# moves with the torch thread count: the golden, made on one thread, has MPJPE 170.9 mm; the same
+# observation ('input': same) fitted on two threads (what CI runs) gave 177.0 mm; its Chamfer stayed
+# within 1 mm.
+CHAOTIC = {("inbetween", "motion-dvae", "mpjpe_mm"): 20.0, ("inbetween", "motion-dvae", "pa_mpjpe_mm"): 12.0,
+           ("table1", "motion-dvae", "mpjpe_mm"): 15.0}
 
 
 def tolerances(spec: dict) -> dict:
