@@ -79,7 +79,7 @@ def run_breakdown(run_dir, body, priors: list[str] | None = None) -> list[dict]:
     units = Path(run_dir) / "units"
     if not units.is_dir():
         raise FileNotFoundError(f"error-breakdown: no units/ folder in {run_dir} (give the --out folder of a "
-                                f"table1, sls or complete run)")
+                                f"table1 or sls run)")
     sums: dict = defaultdict(lambda: defaultdict(float))
     counts: dict = defaultdict(int)
     skipped = []
@@ -138,7 +138,7 @@ def add_error_breakdown_command(sub) -> None:
     p = sub.add_parser("error-breakdown", help="split each completion cell's MPJPE: observed vs in-between frames, "
                                               "pelvis position vs pose, torso / legs / arms (mm)",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("run_dir", help="the --out folder of a table1, sls or complete run (its units/ are read)")
+    p.add_argument("run_dir", help="the --out folder of a table1 or sls run (its units/ are read)")
     p.add_argument("--prior", action="append", default=None, help="only this prior (repeatable)")
     p.add_argument("--body", default="anny", help="the body model the run used (anny | smpl | smplh | smplx[=PATH[:gender]])")
 
