@@ -37,9 +37,9 @@ OBSERVED_TOL_S = 1e-3
 
 
 def _joints(body, quat: np.ndarray, trans: np.ndarray, shape: np.ndarray) -> torch.Tensor:
-    import roma
+    from benchmark.rotations import quaternion_to_matrix
 
-    rot = roma.unitquat_to_rotmat(torch.from_numpy(np.asarray(quat, dtype=np.float32)))
+    rot = quaternion_to_matrix(torch.from_numpy(np.asarray(quat, dtype=np.float32)))
     rest = body.prepare(torch.from_numpy(np.asarray(shape, dtype=np.float32)))
     # the joints only: skin a single vertex
     out = body.skin(rest, rot, torch.from_numpy(np.asarray(trans, dtype=np.float32)), vertex_indices=torch.zeros(1, dtype=torch.long))

@@ -24,7 +24,6 @@ decode the whole window (fixed-window, continuous) decode every output frame the
 from __future__ import annotations
 
 import copy
-import hashlib
 import logging
 import math
 import time
@@ -136,6 +135,9 @@ def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
         raise ValueError(f"prior {adapter.name!r}: decode returned trans {tuple(dec.trans.shape)}, expected {(B, T, 3)}")
 
 
+LATENT_INITS = ("sample", "mean")  # objective.latent_init (initial_latents)
+
+
 def initial_latents(adapter: PriorAdapter, batch: FitBatch, generator: torch.Generator,
                     latent_init: str = "sample") -> dict[str, torch.Tensor]:
     """A fit's starting latents: ``latent_init="sample"`` (table1 v1-v2, PROTOCOL.md): the adapter's
@@ -146,9 +148,6 @@ def initial_latents(adapter: PriorAdapter, batch: FitBatch, generator: torch.Gen
         raise ValueError(f"latent_init {latent_init!r}: choose one of {', '.join(LATENT_INITS)}")
     latents = adapter.mean_latents(batch) if latent_init == "mean" else None
     return adapter.init_latents(batch, generator) if latents is None else latents
-
-
-LATENT_INITS = ("sample", "mean")
 
 
 def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device,
@@ -439,14 +438,13 @@ FACING_CACHE_SIZE = 16
 
 
 def _facing_key(body, batch: FitBatch, device, lr: float, lambda_prior: float) -> tuple:
-    """What :func:`observation_facing`'s result depends on: the observation's content (a digest of its
-    points, lengths and timestamps), the body, the device, the objective and the search's sizes."""
-    digest = hashlib.sha256()
-    for x in (batch.points, batch.lengths, batch.timestamps):
-        t = x.detach().to("cpu").contiguous()
-        digest.update(str((t.dtype, tuple(t.shape))).encode())
-        digest.update(t.numpy().tobytes())
-    return (digest.hexdigest(), float(batch.window_s), id(body), str(device), float(lr), float(lambda_prior),
+    """What :func:`observation_facing`'s result depends on: the observation's content (its
+    :func:`~benchmark.degrade.fingerprint`), the body, the device, the objective and the search's sizes."""
+    from benchmark.degrade import fingerprint
+
+    obs = PointCloudSequence(points=batch.points.detach().cpu(), lengths=batch.lengths.cpu(),
+                             timestamps=batch.timestamps.detach().cpu())
+    return (fingerprint(obs), float(batch.window_s), id(body), str(device), float(lr), float(lambda_prior),
             FACING_HYPOTHESES, FACING_POINTS, FACING_VERTICES, tuple(FACING_STEPS))
 
 
