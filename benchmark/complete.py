@@ -150,7 +150,7 @@ def run_complete(args) -> dict:
     from benchmark.catalog import get_profile, load_table_spec
     from benchmark.motion import Motion
     from benchmark.protocols.completion import decode_output, fit, observation_batch
-    from benchmark.protocols.completion_unit import _loss_vertices, latent_init_rule
+    from benchmark.protocols.completion_unit import _loss_vertices, latent_init_rule, start_search_rule
     from benchmark.registry import make_adapter
     from benchmark.synthetic.scan_set import write_ply_mesh
 
@@ -178,7 +178,8 @@ def run_complete(args) -> dict:
     state, info = fit(adapter, body, batch, steps=steps, lr=float(obj["lr"]), lambda_prior=float(obj["lambda_prior"]),
                       generator=torch.Generator().manual_seed(args.seed), device=device,
                       loss_vertices=_loss_vertices(profile), facing=args.facing,
-                      shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(spec))
+                      shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(spec),
+                      start_search=start_search_rule(spec))
     fit_s = time.perf_counter() - t0
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
 

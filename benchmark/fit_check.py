@@ -37,7 +37,7 @@ def check_cell(cell: dict, targets: dict = TARGETS) -> list[tuple[str, float | N
 
 def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10, profile_name: str | None = None,
                   device: str = "cpu", out: str = "runs/fit-check", seed: int = 0, jobs: int | None = None,
-                  targets: dict = TARGETS) -> int:
+                  targets: dict = TARGETS, start_search: str | None = None) -> int:
     from benchmark.body import get_body
     from benchmark.catalog import get_profile, load_table_spec
     from benchmark.outdir import OutDirLock, check_out_dir
@@ -50,6 +50,17 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
         raise ValueError(f"fit-check: --points {points} / --fps {fps:g} is not a table1 cell "
                          f"(points {grid['points']}, fps {grid['fps']}); pick one of those")
     spec["grid"] = {"points": [points], "fps": [fps]}
+    rule_note = ""
+    if start_search is not None:
+        from benchmark.protocols.completion import START_SEARCH_RULES
+        from benchmark.protocols.completion_unit import start_search_rule
+
+        if start_search not in START_SEARCH_RULES:
+            raise ValueError(f"fit-check: --start-search {start_search!r}: choose one of {', '.join(START_SEARCH_RULES)}")
+        if start_search != start_search_rule(spec):
+            rule_note = (f", objective.start_search {start_search} (the table spec says "
+                         f"{start_search_rule(spec)}: not table1's protocol as committed)")
+        spec["objective"]["start_search"] = start_search
     profile = get_profile(profile_name or ("full" if device.startswith("cuda") else "quick"), table="table1")
     get_prior_class(prior)
     out_dir = check_out_dir(out)
@@ -64,7 +75,7 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
         raise RuntimeError(f"fit-check: the cell is n/a: {cell['na_reason']}")
     rows = check_cell(cell, targets)
     print(f"\nfit-check: {prior}, table1 protocol v{spec['protocol_version']}, profile {profile['name']}, "
-          f"{points} points / {fps:g} fps, {cell['sequences']} sequences ({out_dir}/table1.md)")
+          f"{points} points / {fps:g} fps, {cell['sequences']} sequences{rule_note} ({out_dir}/table1.md)")
     print(f"{'figure':<20}{'value':>10}{'target':>10}  result")
     for name, value, target, ok in rows:
         shown = "n/a" if value is None else f"{value:.1f}" if isinstance(value, float) else str(value)
@@ -87,12 +98,16 @@ def add_fit_check_command(sub) -> None:
     p.add_argument("--device", default=None, help="cpu | cuda (default: cuda when available)")
     p.add_argument("--out", default="runs/fit-check", help="unit files and the one-cell table (a rerun resumes)")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: the cores)")
+    p.add_argument("--start-search", default=None, choices=("none", "limbs"),
+                   help="override the table spec's objective.start_search (how per-frame priors search their start); "
+                        "default: the spec's rule")
 
     def run(args) -> int:
         from benchmark.cli_run import _device
 
         fps = int(args.fps) if float(args.fps).is_integer() else args.fps
         return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,
-                             device=_device(args.device), out=args.out, jobs=args.jobs)
+                             device=_device(args.device), out=args.out, jobs=args.jobs,
+                             start_search=args.start_search)
 
     p.set_defaults(func=run)

@@ -310,7 +310,8 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     state, info = fit(adapter, body, batch, steps=int(profile["steps"]), lr=float(obj["lr"]),
                       lambda_prior=float(obj["lambda_prior"]), generator=g, device=device,
                       loss_vertices=_loss_vertices(profile), facing=facing_rule(table_spec),
-                      shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(table_spec))
+                      shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(table_spec),
+                      start_search=start_search_rule(table_spec))
     t1 = time.perf_counter()
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
     sp = profile.get("surface_points", "all")
@@ -353,6 +354,12 @@ def facing_rule(spec: dict) -> str:
 def latent_init_rule(spec: dict) -> str:
     """Where the priors' latents start (``objective.latent_init``; protocol versions 1-2: ``sample``)."""
     return str(spec["objective"].get("latent_init", "sample"))
+
+
+def start_search_rule(spec: dict) -> str:
+    """How per-frame priors search their start (``objective.start_search``: ``none``, the rule of
+    table1 protocol versions 1-3, or ``limbs``: :func:`benchmark.protocols.completion.limb_start_search`)."""
+    return str(spec["objective"].get("start_search", "none"))
 
 
 def unit_ground_truth_pose(data_source: CompletionData, sequence_ids, data: UnitData):

@@ -1,0 +1,148 @@
+"""The limb start search of per-frame priors (benchmark.protocols.completion.limb_start_search,
+``objective.start_search: limbs``): hypotheses set the limb joints they name and nothing else, each
+observed frame keeps its own best hypothesis, and a fit that starts from the search finds arms that
+a T-pose start folds into a local minimum."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import roma
+import torch
+
+from benchmark.motion import Motion
+from benchmark.observations import make_scans
+from benchmark.protocols.completion import (LIMB_START_STAGES, START_SEARCH_RULES, _best_per_frame, fit, init_state,
+                                              limb_hypotheses, limb_start_search, observation_batch,
+                                              supports_start_search)
+from benchmark.registry import make_adapter
+
+
+def _motion(frames: int = 8, fps: float = 10.0, arms_down_from: int = 0) -> Motion:
+    """A standing body, elbows bent forward and arms lowered from frame ``arms_down_from`` on (T-pose arms before)."""
+    poses = torch.zeros(frames, 22, 3)
+    down = torch.arange(frames) >= arms_down_from
+    poses[down, 16, 2] = -1.2  # left shoulder lowered
+    poses[down, 17, 2] = 1.2
+    poses[down, 18, 1] = -1.57  # left elbow bent forward
+    poses[down, 19, 1] = 1.57
+    poses[:, 4, 0] = 0.3  # knees slightly bent
+    poses[:, 5, 0] = 0.3
+    trans = torch.zeros(frames, 3)
+    trans[:, 1] = 1.0
+    return Motion(poses=poses, trans=trans, timestamps=(torch.arange(frames) / fps).double(), source="arms")
+
+
+def _batch(anny_body, motion: Motion, points: int = 400):
+    scans, gt = make_scans(anny_body, [motion], fps=10.0, num_points=points, seed=0)
+    n = scans.points.shape[1]
+    return observation_batch(scans, n / 10.0, scans.timestamps - scans.timestamps[:, :1], "cpu"), gt
+
+
+def _rotvec(adapter, state, joint: int) -> torch.Tensor:
+    return roma.rotmat_to_rotvec(adapter.decode(state.latents, state.obs_t).rotations[:, :, joint])
+
+
+def test_limb_hypotheses_set_the_named_joints_only(anny_body):
+    adapter = make_adapter("no-prior")
+    batch, _ = _batch(anny_body, _motion(frames=4), points=50)
+    state = init_state(adapter, anny_body, batch, torch.Generator().manual_seed(0), "cpu", search_heading=False)
+    base = adapter.decode(state.latents, state.obs_t).rotations
+    arms = limb_hypotheses(adapter, state, 0)
+    starts = LIMB_START_STAGES[0][2]
+    assert len(arms) == len(starts) ** 2  # every combination of the left and right arm's starts
+    for i, hyp in enumerate(arms):
+        rot = adapter.decode(hyp, state.obs_t).rotations
+        left, right = starts[i // len(starts)], starts[i % len(starts)]
+        for joints, cfg, sign in ((LIMB_START_STAGES[0][0], left, 1.0), (LIMB_START_STAGES[0][1], right, -1.0)):
+            for part, j in joints.items():
+                want = torch.tensor(cfg.get(part, (0.0, 0.0, 0.0))) * torch.tensor([1.0, sign, sign])
+                got = roma.rotmat_to_rotvec(rot[:, :, j])
+                assert torch.allclose(got, want.expand_as(got), atol=1e-5), (i, part, got[0, 0], want)
+        others = [j for j in range(22) if j not in (16, 17, 18, 19)]
+        assert torch.allclose(rot[:, :, others], base[:, :, others], atol=1e-6)
+    legs = limb_hypotheses(adapter, state, 1)
+    assert torch.allclose(adapter.decode(legs[0], state.obs_t).rotations, base, atol=1e-6)  # None keeps the legs
+    bent = roma.rotmat_to_rotvec(adapter.decode(legs[-1], state.obs_t).rotations)
+    assert torch.allclose(bent[0, 0, 4], torch.tensor([1.2, 0.0, 0.0]), atol=1e-5)  # left knee
+    assert torch.allclose(bent[0, 0, 5], torch.tensor([1.2, 0.0, 0.0]), atol=1e-5)  # right knee (x: mirror-invariant)
+    own, prev, nxt = limb_hypotheses(adapter, state, len(LIMB_START_STAGES))
+    pose = state.latents["pose"]
+    assert torch.equal(own["pose"], pose) and torch.equal(prev["pose"][:, 1:], pose[:, :-1])
+    assert torch.equal(nxt["pose"][:, :-1], pose[:, 1:]) and torch.equal(prev["pose"][:, 0], pose[:, 0])
+    assert limb_hypotheses(adapter, state, len(LIMB_START_STAGES) + 1) is None
+
+
+def test_each_frame_keeps_its_own_best_hypothesis(anny_body):
+    """Frames 0-3 have T-pose arms, frames 4-7 lowered arms with bent elbows; hypotheses at each
+    half's true pose: every frame keeps the one that is right for it."""
+    adapter = make_adapter("no-prior")
+    motion = _motion(frames=8, arms_down_from=4)
+    batch, _ = _batch(anny_body, motion)
+    state = init_state(adapter, anny_body, batch, torch.Generator().manual_seed(0), "cpu", search_heading=False)
+    with torch.no_grad():  # the true root translation and knees, so only the arms differ between hypotheses
+        state.trans.copy_(motion.trans[None].to(state.trans) + state.trans.mean(1, keepdim=True) * 0)
+    true_rot = roma.rotvec_to_rotmat(motion.poses)[None]
+    first = torch.cat([true_rot[:, :4], true_rot[:, :4]], 1)  # T-pose arms everywhere
+    second = torch.cat([true_rot[:, 4:], true_rot[:, 4:]], 1)  # lowered arms everywhere
+    hyps = [adapter.encode_motion(r, torch.zeros(1, 8, 3), state.obs_t) for r in (first, second)]
+    out, counts = _best_per_frame(adapter, anny_body, batch, state, hyps, lr=0.03, lambda_prior=0.0)
+    assert counts == [4, 4]
+    shoulder = _rotvec(adapter, out, 16)[0, :, 2]
+    assert bool((shoulder[:4].abs() < 0.4).all()) and bool((shoulder[4:] < -0.8).all()), shoulder
+    for x in (out.latents["pose"], out.root, out.trans, out.shape_param):
+        assert x.is_leaf and x.requires_grad
+    assert out.latents["pose"].shape == state.latents["pose"].shape and out.root.shape == state.root.shape
+
+
+def test_the_search_finds_arms_a_tpose_start_misses(anny_body):
+    """Lowered arms with elbows bent forward: from the T-pose the fit folds them into a local
+    minimum; from the limb search it finds them (arm joints within a few centimetres)."""
+    adapter = make_adapter("no-prior")
+    batch, gt = _batch(anny_body, _motion(frames=3), points=500)
+    errors = {}
+    for rule in ("none", "limbs"):
+        state, info = fit(adapter, anny_body, batch, steps=40, lr=0.03, lambda_prior=0.0,
+                          generator=torch.Generator().manual_seed(0), device="cpu", loss_vertices=500,
+                          facing="observation", shape_lr_scale=10, latent_init="mean", start_search=rule)
+        with torch.no_grad():
+            from benchmark.protocols.completion import decode_output
+
+            out, _, _ = decode_output(state, anny_body, batch.timestamps)
+        aligned = (out.joints - out.joints[:, :, :1]) - (gt.joints - gt.joints[:, :, :1]).to(out.joints)
+        errors[rule] = float(aligned[:, :, [18, 19, 20, 21]].norm(dim=-1).mean()) * 1000
+        if rule == "limbs":
+            assert len(info["start_choice_counts"]) == len(LIMB_START_STAGES) + 1
+    assert errors["limbs"] < 40.0 and errors["limbs"] < 0.5 * errors["none"], errors
+
+
+def test_the_search_applies_to_per_frame_priors_that_can_encode_a_pose(anny_body):
+    assert START_SEARCH_RULES == ("none", "limbs")
+    assert supports_start_search(make_adapter("no-prior")) and supports_start_search(make_adapter("vposer-slerp"))
+    assert not supports_start_search(make_adapter("sequential-primitives"))
+    assert not supports_start_search(make_adapter("hmvae"))  # fixed-window
+    adapter = make_adapter("sequential-primitives")
+    batch, _ = _batch(anny_body, _motion(frames=4), points=50)
+    state = init_state(adapter, anny_body, batch, torch.Generator().manual_seed(0), "cpu", search_heading=False)
+    same, log = limb_start_search(adapter, anny_body, batch, state, lr=0.03, lambda_prior=0.01)
+    assert same is state and log["start_search"].startswith("none")
+
+
+def test_vposer_hypotheses_are_its_encoder_means(anny_body):
+    adapter = make_adapter("vposer-slerp")
+    batch, _ = _batch(anny_body, _motion(frames=3), points=50)
+    state = init_state(adapter, anny_body, batch, torch.Generator().manual_seed(0), "cpu", search_heading=False,
+                       latent_init="mean")
+    hyps = limb_hypotheses(adapter, state, 0)
+    rot = adapter.decode(hyps[4], state.obs_t).rotations  # both arms lowered, elbows straight
+    shoulder = roma.rotmat_to_rotvec(rot[:, :, 16])
+    assert float(shoulder[..., 2].mean()) < -0.6, shoulder  # the decoded arm is lowered, as the encoder understood it
+    assert hyps[4]["z"].shape == state.latents["z"].shape
+
+
+def test_fit_refuses_an_unknown_start_search(anny_body):
+    batch, _ = _batch(anny_body, _motion(frames=2), points=30)
+    with pytest.raises(ValueError, match="unknown start search 'joints'"):
+        fit(make_adapter("no-prior"), anny_body, batch, steps=1, lr=0.03, lambda_prior=0.01,
+            generator=torch.Generator().manual_seed(0), device="cpu", start_search="joints")
