@@ -5,7 +5,6 @@ a T-pose start folds into a local minimum."""
 
 from __future__ import annotations
 
-import math
 
 import pytest
 import roma
