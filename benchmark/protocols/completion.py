@@ -317,10 +317,11 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
 
     if start_search not in START_SEARCH_RULES:
         raise ValueError(f"fit: unknown start search {start_search!r}; choose one of {', '.join(START_SEARCH_RULES)}")
-    if start_search == "limbs":
-        state, search_log = limb_start_search(adapter, body, batch, state, lr, lambda_prior)
-        facing_log.update(search_log)
     facing_log["facing_s"] = time.perf_counter() - t_facing
+    if start_search == "limbs":
+        t_search = time.perf_counter()
+        state, search_log = limb_start_search(adapter, body, batch, state, lr, lambda_prior)
+        facing_log.update(search_log, start_search_s=time.perf_counter() - t_search)
 
     def step_loss(step):
         rot, trans = body_parameters(state, batch.timestamps, observed=True)

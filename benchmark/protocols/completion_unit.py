@@ -335,7 +335,8 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     return {
         "unit_id": unit.unit_id, "spec_hash": unit.spec_hash, "prior": unit.prior, "cell": dict(cell),
         "sequence_ids": list(unit.sequence_ids), "fingerprint": fp, "per_sequence": per_seq,
-        "timings": {"fit_s": t1 - t0, "eval_s": t2 - t1, "facing_s": info.get("facing_s", 0.0)}, "device": str(device),
+        "timings": {"fit_s": t1 - t0, "eval_s": t2 - t1, "facing_s": info.get("facing_s", 0.0),
+                    **({"start_search_s": info["start_search_s"]} if "start_search_s" in info else {})}, "device": str(device),
         "na_reason": None, "fit_log": info["history"], **({"facing_search": {k: info[k] for k in FACING_LOG if k in info}}
                                        if any(k in info for k in FACING_LOG) else {}),
         # the runner stores it as .npz; captured scans have no ground-truth motion to store beside the fit
@@ -343,7 +344,8 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     }
 
 
-FACING_LOG = ("facing_yaw_rad", "facing_scores_mm")  # what the facing search logs (completion.facing_search)
+# what the facing search logs (completion.facing_search), and the limb start search's choices per stage
+FACING_LOG = ("facing_yaw_rad", "facing_scores_mm", "start_choice_counts")
 
 
 def facing_rule(spec: dict) -> str:
