@@ -52,7 +52,7 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
     spec["grid"] = {"points": [points], "fps": [fps]}
     rule_note = ""
     if start_search is not None:
-        from benchmark.protocols.completion import START_SEARCH_RULES
+        from benchmark.protocols.start_search import START_SEARCH_RULES
         from benchmark.protocols.completion_unit import start_search_rule
 
         if start_search not in START_SEARCH_RULES:

@@ -1,10 +1,9 @@
-"""The limb start search of per-frame priors (benchmark.protocols.completion.limb_start_search,
+"""The limb start search of per-frame priors (benchmark.protocols.start_search.limb_start_search,
 ``objective.start_search: limbs``): hypotheses set the limb joints they name and nothing else, each
 observed frame keeps its own best hypothesis, and a fit that starts from the search finds arms that
 a T-pose start folds into a local minimum."""
 
 from __future__ import annotations
-
 
 import pytest
 import roma
@@ -12,9 +11,9 @@ import torch
 
 from benchmark.motion import Motion
 from benchmark.observations import make_scans
-from benchmark.protocols.completion import (LIMB_START_STAGES, START_SEARCH_RULES, _best_per_frame, fit, init_state,
-                                              limb_hypotheses, limb_start_search, observation_batch,
-                                              supports_start_search)
+from benchmark.protocols.completion import fit, init_state, observation_batch
+from benchmark.protocols.start_search import (LIMB_START_STAGES, START_SEARCH_RULES, _best_per_frame, limb_hypotheses,
+                                                limb_start_search, supports_start_search)
 from benchmark.registry import make_adapter
 
 

@@ -360,7 +360,7 @@ def latent_init_rule(spec: dict) -> str:
 
 def start_search_rule(spec: dict) -> str:
     """How per-frame priors search their start (``objective.start_search``: ``none``, the rule of
-    table1 protocol versions 1-3, or ``limbs``: :func:`benchmark.protocols.completion.limb_start_search`)."""
+    table1 protocol versions 1-3, or ``limbs``: :func:`benchmark.protocols.start_search.limb_start_search`)."""
     return str(spec["objective"].get("start_search", "none"))
 
 

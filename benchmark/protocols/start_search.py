@@ -1,0 +1,151 @@
+"""The limb start search of per-frame priors (table1 protocol v4, ``objective.start_search: limbs``).
+
+After the facing is found (:mod:`benchmark.protocols.completion`), a per-frame prior whose latents
+are per observed frame and that can express a pose in them tries, per observed frame, limb start
+hypotheses in stages (arms, legs, the neighbouring frames' poses), each fitted briefly on the facing
+search's subset; each frame keeps its best by data term. From the T-pose, no-prior's fits folded
+the forearms into local minima of the data term (table1.yaml, version 4).
+"""
+
+from __future__ import annotations
+
+import roma
+import torch
+
+from benchmark.metrics.static_chamfer import StaticChamfer
+from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitBatch, FitState, _repeat_batch,
+                                              _rigid_parameters, _subset_batch, frame_chamfer, optimise)
+from priors.base import PriorAdapter
+
+# objective.start_search (table1 protocol v4): "none", or "limbs": :func:`limb_start_search`.
+START_SEARCH_RULES = ("none", "limbs")
+START_SEARCH_STEPS = (15, 25)  # coarse-fit steps per start hypothesis: rigid parameters only, then every variable
+# The limb start hypotheses, in stages: first each arm in the T-pose, lowered to the side, or lowered
+# with the elbow bent forward; then each leg as it is, or with the hip flexed forward and the knee
+# bent. Local rotation vectors (radians) of the left limb's joints (SMPL order); the right limb's
+# are mirrored about the x = 0 plane. None keeps the limb as it is.
+LIMB_START_STAGES = (
+    ({"shoulder": 16, "elbow": 18}, {"shoulder": 17, "elbow": 19},
+     ({}, {"shoulder": (0.0, 0.0, -1.2)}, {"shoulder": (0.0, 0.0, -1.2), "elbow": (0.0, -1.57, 0.0)})),
+    ({"hip": 1, "knee": 4}, {"hip": 2, "knee": 5},
+     (None, {"hip": (-0.6, 0.0, 0.0), "knee": (1.2, 0.0, 0.0)})),
+)
+
+
+def supports_start_search(adapter: PriorAdapter) -> bool:
+    """Whether ``limb_start_search`` applies: a per-frame prior (one latent set per observed frame)
+    that can express a given pose in its latents (``encode_motion``: exact for no-prior, the
+    encoder's mean for VPoser)."""
+    return adapter.window.kind == "per-frame" and type(adapter).encode_motion is not PriorAdapter.encode_motion
+
+
+def limb_hypotheses(adapter: PriorAdapter, state: FitState, stage: int) -> list[dict] | None:
+    """The start hypotheses of ``stage`` from ``state`` (None past the last stage): for each limb
+    stage, every combination of its starts for the left and right limb set on the decoded pose of
+    every observed frame and encoded back (``adapter.encode_motion``); the last stage: each
+    frame's own latents and those of the previous and the next observed frame."""
+    if stage > len(LIMB_START_STAGES):
+        return None
+    lat = {k: v.detach() for k, v in state.latents.items()}
+    if stage == len(LIMB_START_STAGES):
+        prev = {k: torch.cat([v[:, :1], v[:, :-1]], 1) for k, v in lat.items()}
+        nxt = {k: torch.cat([v[:, 1:], v[:, -1:]], 1) for k, v in lat.items()}
+        return [{k: v.clone() for k, v in lat.items()}, prev, nxt]
+    left_joints, right_joints, starts = LIMB_START_STAGES[stage]
+    with torch.no_grad():
+        shape = state.shape() if adapter.shape_conditioned else None
+        rot = adapter.decode(lat, state.obs_t, shape).rotations
+        zero_trans = rot.new_zeros(*rot.shape[:2], 3)
+        mirror = torch.tensor([1.0, -1.0, -1.0], dtype=rot.dtype, device=rot.device)
+        out = []
+        for left in starts:
+            for right in starts:
+                r = rot.clone()
+                for joints, cfg, flip in ((left_joints, left, False), (right_joints, right, True)):
+                    if cfg is None:
+                        continue
+                    for part, j in joints.items():
+                        v = torch.tensor(cfg.get(part, (0.0, 0.0, 0.0)), dtype=rot.dtype, device=rot.device)
+                        r[:, :, j] = roma.rotvec_to_rotmat(v * mirror if flip else v)
+                enc = adapter.encode_motion(r, zero_trans, state.obs_t)
+                out.append({k: enc[k].detach().to(lat[k]) for k in lat})
+    return out
+
+
+def limb_start_search(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, lr: float,
+                      lambda_prior: float) -> tuple[FitState, dict]:
+    """A per-frame prior's start, limb by limb (table1 protocol v4, ``objective.start_search: limbs``).
+
+    From ``state`` (the facing already set), stage by stage (:func:`limb_hypotheses`): every
+    hypothesis is fitted briefly on a subset (FACING_POINTS observed points per frame,
+    FACING_VERTICES mesh vertices; START_SEARCH_STEPS), and each observed frame keeps the
+    hypothesis with the lowest data term at that frame. A prior it does not apply to
+    (:func:`supports_start_search`) keeps ``state``. Returns the state and the choice counts per stage."""
+    if not supports_start_search(adapter):
+        return state, {"start_search": "none: not a per-frame prior with encode_motion"}
+    counts = []
+    stage = 0
+    while (hyps := limb_hypotheses(adapter, state, stage)) is not None:
+        state, stage_counts = _best_per_frame(adapter, body, batch, state, hyps, lr, lambda_prior)
+        counts.append(stage_counts)
+        stage += 1
+    return state, {"start_choice_counts": counts}
+
+
+def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, hyps: list[dict],
+                    lr: float, lambda_prior: float) -> tuple[FitState, list[int]]:
+    """Per observed frame, the best of the start hypotheses ``hyps`` (latents of ``state``'s shapes,
+    per observed frame along dimension 1), each fitted briefly from ``state``'s rigid parameters
+    and shape. The data term is a mean over frames of terms of that frame's variables and the
+    shared shape, so each frame takes its own best; the shape is that of the hypothesis with the
+    lowest mean."""
+    K = len(hyps)
+    B, n = batch.batch_size, batch.num_observed
+    small = _subset_batch(_repeat_batch(batch, K), FACING_POINTS)
+
+    def rep(x):
+        return None if x is None else x.detach().repeat_interleave(K, dim=0).clone().requires_grad_(True)
+
+    latents = {k: torch.stack([h[k] for h in hyps], 1).flatten(0, 1).clone().requires_grad_(True)
+               for k in state.latents}
+    hyp = FitState(adapter=adapter, latents=latents, shape_param=rep(state.shape_param), obs_t=small.timestamps,
+                   window_s=state.window_s, root=rep(state.root), trans=rep(state.trans), heading=rep(state.heading),
+                   offset=rep(state.offset), bounded_shape=state.bounded_shape)
+    subset = body.loss_vertex_indices(FACING_VERTICES)
+    chamfer = StaticChamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1))
+
+    def frame_terms():
+        return frame_chamfer(hyp, body, small, subset, chamfer) * 1000.0
+
+    def loss_of(step):
+        return (frame_terms().mean(1) + lambda_prior * adapter.prior_term(hyp.latents)).sum(), lambda: {}
+
+    rigid_steps, all_steps = START_SEARCH_STEPS
+    optimise(adapter.name, _rigid_parameters(hyp), rigid_steps, lr, 1.0, loss_of)
+    optimise(adapter.name, hyp.parameters(), all_steps, lr, 1.0, loss_of)
+    with torch.no_grad():
+        scores = frame_terms().view(B, K, n)
+    best = scores.argmin(1)  # (B, n)
+
+    def per_frame(x):
+        if x is None:
+            return None
+        y = x.detach().view(B, K, *x.shape[1:])
+        if y.shape[2] != n:
+            raise ValueError(f"start search: prior {adapter.name!r} has a variable of shape {tuple(x.shape[1:])} "
+                             f"that is not per observed frame ({n} frames along dimension 1)")
+        idx = best.view(B, 1, n, *([1] * (y.dim() - 3))).expand(B, 1, n, *y.shape[3:])
+        return y.gather(1, idx)[:, 0].clone().requires_grad_(True)
+
+    whole = scores.mean(2).argmin(1)  # (B,)
+
+    def per_sequence(x):
+        if x is None:
+            return None
+        return x.detach().view(B, K, *x.shape[1:])[torch.arange(B), whole].clone().requires_grad_(True)
+
+    out = FitState(adapter=adapter, latents={k: per_frame(v) for k, v in hyp.latents.items()},
+                   shape_param=per_sequence(hyp.shape_param), obs_t=state.obs_t, window_s=state.window_s,
+                   root=per_frame(hyp.root), trans=per_frame(hyp.trans), heading=per_sequence(hyp.heading),
+                   offset=per_sequence(hyp.offset), bounded_shape=state.bounded_shape)
+    return out, [int(c) for c in torch.bincount(best.flatten(), minlength=K)]
