@@ -98,7 +98,7 @@ def add_fit_check_command(sub) -> None:
     p.add_argument("--device", default=None, help="cpu | cuda (default: cuda when available)")
     p.add_argument("--out", default="runs/fit-check", help="unit files and the one-cell table (a rerun resumes)")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: the cores)")
-    p.add_argument("--start-search", default=None, choices=("none", "limbs"),
+    p.add_argument("--start-search", default=None, choices=("none", "limbs", "observation"),
                    help="override the table spec's objective.start_search (how per-frame priors search their start); "
                         "default: the spec's rule")
 

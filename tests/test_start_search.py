@@ -5,6 +5,8 @@ a T-pose start folds into a local minimum."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import roma
 import torch
@@ -12,8 +14,9 @@ import torch
 from benchmark.motion import Motion
 from benchmark.observations import make_scans
 from benchmark.protocols.completion import fit, init_state, observation_batch
-from benchmark.protocols.start_search import (LIMB_START_STAGES, START_SEARCH_RULES, _best_per_frame, limb_hypotheses,
-                                                limb_start_search, supports_start_search)
+from benchmark.protocols.start_search import (LIMB_START_STAGES, START_SEARCH_RULES, _best_per_frame, encoded_start,
+                                                limb_hypotheses, limb_start_search, prior_free_start,
+                                                supports_encoded_start, supports_start_search)
 from benchmark.registry import make_adapter
 
 
@@ -116,7 +119,9 @@ def test_the_search_finds_arms_a_tpose_start_misses(anny_body):
 
 
 def test_the_search_applies_to_per_frame_priors_that_can_encode_a_pose(anny_body):
-    assert START_SEARCH_RULES == ("none", "limbs")
+    assert START_SEARCH_RULES == ("none", "limbs", "observation")
+    assert supports_encoded_start(make_adapter("hmvae")) and supports_encoded_start(make_adapter("sequential-primitives"))
+    assert not supports_encoded_start(make_adapter("no-prior")) and not supports_encoded_start(make_adapter("vposer-slerp"))
     assert supports_start_search(make_adapter("no-prior")) and supports_start_search(make_adapter("vposer-slerp"))
     assert not supports_start_search(make_adapter("sequential-primitives"))
     assert not supports_start_search(make_adapter("hmvae"))  # fixed-window
@@ -144,3 +149,88 @@ def test_fit_refuses_an_unknown_start_search(anny_body):
     with pytest.raises(ValueError, match="unknown start search 'joints'"):
         fit(make_adapter("no-prior"), anny_body, batch, steps=1, lr=0.03, lambda_prior=0.01,
             generator=torch.Generator().manual_seed(0), device="cpu", start_search="joints")
+
+
+# -- table1 protocol v5: the encoded prior-free start of window and continuous priors -------------
+def _walkers(anny_body, frames: int = 8, points: int = 200):
+    from tests.test_facing import _turned_walker
+
+    scans, _ = make_scans(anny_body, [_turned_walker(math.pi, frames=frames), _turned_walker(0.5, frames=frames)],
+                          fps=10.0, num_points=points, seed=0)
+    out_t = (torch.arange(frames, dtype=torch.float64) / 10.0)[None].expand(2, -1)
+    return observation_batch(scans, frames / 10.0, out_t, "cpu")
+
+
+def _fresh_cache(monkeypatch):
+    from benchmark.protocols import start_search
+
+    monkeypatch.setattr(start_search, "_START_CACHE", start_search.OrderedDict())
+
+
+@pytest.mark.parametrize("prior", ["sequential-primitives", "hmvae"])
+def test_encoded_start_is_the_prior_free_start_encoded(anny_body, monkeypatch, prior):
+    """A window prior (free heading and offset: sequential primitives; free root orientation and
+    translation: HM-VAE) starts from the prior-free start at the output timestamps, encoded; its
+    body shape; its rigid parameters set to the prior-free root and translation."""
+    from benchmark.protocols.fit_state import body_parameters
+
+    _fresh_cache(monkeypatch)
+    batch = _walkers(anny_body)
+    adapter = make_adapter(prior)
+    g = torch.Generator().manual_seed(0)
+    args = dict(device="cpu", lr=0.03, lambda_prior=0.01)
+    own = init_state(adapter, anny_body, batch, g, "cpu", search_heading=False, latent_init="mean")
+    state, log = encoded_start(adapter, anny_body, batch, own, g, **args)
+    ref, _ = prior_free_start(anny_body, batch, g, **args)
+    rot, trans = body_parameters(ref, batch.output_timestamps)
+    want = adapter.encode_motion(rot, trans, batch.output_timestamps)
+    for k, v in state.latents.items():
+        assert torch.equal(v.detach(), want[k].to(v)) and v.requires_grad and v.is_leaf, k
+    assert torch.equal(state.shape_param.detach(), ref.shape_param.detach())
+    ref_rot, ref_trans = body_parameters(ref, batch.timestamps, observed=True)
+    got_rot, got_trans = body_parameters(state, batch.timestamps, observed=True)
+    if state.trans is not None:  # the prior does not decode translation: the free translation is the reference's
+        assert torch.equal(state.trans.detach(), ref_trans)
+    else:  # a free offset: the decoded translation matches the reference's on average
+        assert torch.allclose((got_trans - ref_trans).mean(1), torch.zeros(2, 3), atol=1e-5)
+    if state.root is not None:
+        assert torch.allclose(roma.special_gramschmidt(state.root.detach().unflatten(-1, (3, 2))), ref_rot[:, :, 0],
+                              atol=1e-5)
+    # the prior's term measures from this start where it measures from a start (the sequential primitives' z_init)
+    if prior == "sequential-primitives":
+        assert torch.allclose(adapter.prior_term(state.latents), torch.zeros(2), atol=1e-6)
+    assert log["start"] == "encoded prior-free start" and len(log["start_choice_counts"]) == len(LIMB_START_STAGES) + 1
+    assert got_rot.shape == ref_rot.shape
+
+
+def test_encoded_start_leaves_per_frame_priors_and_is_searched_once(anny_body, monkeypatch):
+    """Per-frame priors keep their own limb search (no-prior's fit is the same under "observation"
+    as under "limbs", bit for bit); the prior-free start runs once per observation and is served as a
+    fresh copy."""
+    from benchmark.protocols import start_search
+
+    _fresh_cache(monkeypatch)
+    batch = _walkers(anny_body, frames=4, points=60)
+    adapter = make_adapter("no-prior")
+    g = torch.Generator().manual_seed(0)
+    state = init_state(adapter, anny_body, batch, g, "cpu", search_heading=False)
+    same, log = encoded_start(adapter, anny_body, batch, state, g, device="cpu", lr=0.03, lambda_prior=0.01)
+    assert same is state and log["start_search"].startswith("none")
+    assert "observation" in START_SEARCH_RULES
+    runs = []
+    for rule in ("limbs", "observation"):
+        st, info = fit(adapter, anny_body, batch, steps=2, lr=0.03, lambda_prior=0.01, generator=torch.Generator().manual_seed(0),
+                       device="cpu", loss_vertices=300, facing="observation", latent_init="mean", start_search=rule)
+        runs.append((st, info))
+    assert torch.equal(runs[0][0].latents["pose"], runs[1][0].latents["pose"])
+    assert torch.equal(runs[0][1]["data_trace"], runs[1][1]["data_trace"])
+    calls = []
+    real = start_search.limb_start_search
+    monkeypatch.setattr(start_search, "limb_start_search", lambda *a, **k: calls.append(1) or real(*a, **k))
+    a, _ = prior_free_start(anny_body, batch, g, device="cpu", lr=0.03, lambda_prior=0.01)
+    with torch.no_grad():
+        a.latents["pose"].add_(1.0)  # a caller's change never reaches the cache
+    b, _ = prior_free_start(anny_body, batch, g, device="cpu", lr=0.03, lambda_prior=0.01)
+    assert len(calls) == 1 and not torch.equal(a.latents["pose"], b.latents["pose"])
+    c, _ = prior_free_start(anny_body, batch, g, device="cpu", lr=0.03, lambda_prior=0.01)
+    assert torch.equal(b.latents["pose"], c.latents["pose"]) and len(calls) == 1

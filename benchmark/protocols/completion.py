@@ -38,7 +38,7 @@ from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, HEADI
                                              _repeat_batch, _rigid_parameters, _set_yaw, _subset_batch, apply_free_rigid,
                                              body_parameters, frame_chamfer, init_state, initial_latents, optimise,
                                              parameter_groups)
-from benchmark.protocols.start_search import START_SEARCH_RULES, limb_start_search
+from benchmark.protocols.start_search import START_SEARCH_RULES, encoded_start, limb_start_search
 from priors.base import FitBatch, PriorAdapter
 
 log = logging.getLogger(__name__)
@@ -92,9 +92,11 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     if start_search not in START_SEARCH_RULES:
         raise ValueError(f"fit: unknown start search {start_search!r}; choose one of {', '.join(START_SEARCH_RULES)}")
     facing_log["facing_s"] = time.perf_counter() - t_facing
-    if start_search == "limbs":
+    if start_search in ("limbs", "observation"):
         t_search = time.perf_counter()
         state, search_log = limb_start_search(adapter, body, batch, state, lr, lambda_prior)
+        if start_search == "observation" and "start_choice_counts" not in search_log:
+            state, search_log = encoded_start(adapter, body, batch, state, generator, device, lr, lambda_prior)
         facing_log.update(search_log, start_search_s=time.perf_counter() - t_search)
 
     def step_loss(step):

@@ -279,3 +279,31 @@ def frame_chamfer(state: FitState, body, batch: FitBatch, subset, chamfer: Stati
 def _data_term(state: FitState, body, batch: FitBatch, subset, chamfer: StaticChamfer) -> torch.Tensor:
     """(B,) the protocol's data term (mm): :func:`frame_chamfer`, mean over the observed frames."""
     return frame_chamfer(state, body, batch, subset, chamfer).mean(1) * 1000.0
+
+
+@torch.no_grad()
+def set_rigid(state: FitState, timestamps: torch.Tensor, rotations: torch.Tensor | None,
+              trans: torch.Tensor | None) -> None:
+    """Set ``state``'s free rigid parameters so that its motion at the observed ``timestamps``
+    (B, n) follows a given root orientation (``rotations``: (B, n, 22, 3, 3) local rotations, or
+    their roots) and translation (B, n, 3): the free root orientation to the root (priors that do not
+    decode it), the free heading to the mean yaw between it and the decoded root, the free
+    translation to the translation (priors that do not decode it), the free offset to the mean
+    difference from the decoded translation."""
+    R_obs = None if rotations is None else rotations[:, :, 0].to(state.shape_param)
+    if state.root is not None and R_obs is not None:
+        state.root.copy_(R_obs[..., :, :2].flatten(-2))
+    if state.heading is not None and R_obs is not None:
+        state.heading.zero_()
+        rot, _ = body_parameters(state, timestamps, observed=True)
+        rel = R_obs @ rot[:, :, 0].transpose(-1, -2)  # H with H @ decoded root = observed root
+        yaw = torch.atan2(rel[..., 0, 2], rel[..., 2, 2])  # (B, n) yaw about +y
+        state.heading.copy_(torch.atan2(yaw.sin().mean(1), yaw.cos().mean(1))[:, None])
+    if trans is not None:
+        tr_obs = trans.to(state.shape_param)
+        if state.trans is not None:  # the prior does not decode translation
+            state.trans.copy_(tr_obs)
+        elif state.offset is not None:  # it does: align its decoded translation on average
+            state.offset.zero_()
+            _, tr = body_parameters(state, timestamps, observed=True)
+            state.offset.copy_((tr_obs - tr).mean(1))

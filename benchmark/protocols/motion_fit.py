@@ -47,6 +47,7 @@ import roma
 import torch
 
 from benchmark.protocols.completion import FitState, body_parameters, init_state, optimise
+from benchmark.protocols.fit_state import set_rigid
 from benchmark.skeleton import NUM_JOINTS
 from priors.base import FitBatch, PriorAdapter
 
@@ -281,27 +282,10 @@ def init_motion_state(adapter, body, targets: MotionTargets, generator: torch.Ge
     return state
 
 
-@torch.no_grad()
 def set_rigid_from_observation(state: FitState, targets: MotionTargets) -> None:
-    """Start the free rigid parameters at the observed root orientation and translation."""
-    t = targets.timestamps
-    R_obs = None if targets.init_rotations is None else targets.init_rotations[:, :, 0].to(state.shape_param)
-    if state.root is not None and R_obs is not None:
-        state.root.copy_(R_obs[..., :, :2].flatten(-2))
-    if state.heading is not None and R_obs is not None:
-        state.heading.zero_()
-        rot, _ = body_parameters(state, t, observed=True)
-        rel = R_obs @ rot[:, :, 0].transpose(-1, -2)  # H with H @ decoded root = observed root
-        yaw = torch.atan2(rel[..., 0, 2], rel[..., 2, 2])  # (B, n) yaw about +y
-        state.heading.copy_(torch.atan2(yaw.sin().mean(1), yaw.cos().mean(1))[:, None])
-    if targets.init_trans is not None:
-        tr_obs = targets.init_trans.to(state.shape_param)
-        if state.trans is not None:  # the prior does not encode translation
-            state.trans.copy_(tr_obs)
-        elif state.offset is not None:  # it does: align its decoded translation on average
-            state.offset.zero_()
-            _, tr = body_parameters(state, t, observed=True)
-            state.offset.copy_((tr_obs - tr).mean(1))
+    """Start the free rigid parameters at the observed root orientation and translation
+    (:func:`benchmark.protocols.fit_state.set_rigid`)."""
+    set_rigid(state, targets.timestamps, targets.init_rotations, targets.init_trans)
 
 
 def free_parameters(state: FitState) -> list[torch.Tensor]:

@@ -9,16 +9,22 @@ the forearms into local minima of the data term (table1.yaml, version 4).
 
 from __future__ import annotations
 
+import copy
+from collections import OrderedDict
+
 import roma
 import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitBatch, FitState, _repeat_batch,
-                                              _rigid_parameters, _subset_batch, frame_chamfer, optimise)
+                                              _rigid_parameters, _subset_batch, body_parameters, frame_chamfer,
+                                              optimise, set_rigid)
 from priors.base import PriorAdapter
 
-# objective.start_search (table1 protocol v4): "none", or "limbs": :func:`limb_start_search`.
-START_SEARCH_RULES = ("none", "limbs")
+# objective.start_search: "none"; "limbs" (table1 protocol v4): :func:`limb_start_search` for the
+# per-frame priors; "observation" (v5): the same, and every other prior with a motion encoder starts
+# from the prior-free body's limb-searched start, encoded (:func:`encoded_start`).
+START_SEARCH_RULES = ("none", "limbs", "observation")
 START_SEARCH_STEPS = (15, 25)  # coarse-fit steps per start hypothesis: rigid parameters only, then every variable
 # The limb start hypotheses, in stages: first each arm in the T-pose, lowered to the side, or lowered
 # with the elbow bent forward; then each leg as it is, or with the hip flexed forward and the knee
@@ -149,3 +155,89 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
                    root=per_frame(hyp.root), trans=per_frame(hyp.trans), heading=per_sequence(hyp.heading),
                    offset=per_sequence(hyp.offset), bounded_shape=state.bounded_shape)
     return out, [int(c) for c in torch.bincount(best.flatten(), minlength=K)]
+
+
+def supports_encoded_start(adapter: PriorAdapter) -> bool:
+    """Whether :func:`encoded_start` applies: a prior that is not per-frame (those search their own
+    start, :func:`limb_start_search`) and has a motion encoder (``has_encoder`` and ``encode_motion``)."""
+    from benchmark.protocols.motion_fit import has_motion_encoder
+
+    return adapter.window.kind != "per-frame" and has_motion_encoder(adapter)
+
+
+# prior_free_start's results in this process, by observation: every prior of a table cell sees the
+# same observation, so the prior-free search runs once per cell and worker, not once per prior.
+_START_CACHE: OrderedDict = OrderedDict()
+START_CACHE_SIZE = 8
+
+
+def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, lr: float,
+                     lambda_prior: float) -> tuple[FitState, dict]:
+    """The prior-free body's start on the observation (the state no-prior's fit starts from under
+    ``start_search: limbs``): its facing found on the observation
+    (:func:`benchmark.protocols.completion.observed_facing`), then :func:`limb_start_search`.
+    Deterministic (the prior-free body draws nothing from ``generator``); kept per process for the
+    last START_CACHE_SIZE observations and served again as a fresh copy. Returns the state and the
+    search's log."""
+    from benchmark.protocols.completion import _facing_key, observed_facing
+    from priors.no_prior import NoPrior
+
+    key = ("start", *_facing_key(body, batch, device, lr, lambda_prior), repr(LIMB_START_STAGES), START_SEARCH_STEPS)
+    hit = _START_CACHE.get(key)
+    if hit is None or hit[0] is not body:
+        ref_prior = NoPrior(device=device)
+        state, facing_log = observed_facing(ref_prior, body, batch, generator, device, lr, lambda_prior, latent_init="mean")
+        state, search_log = limb_start_search(ref_prior, body, batch, state, lr, lambda_prior)
+        hit = (body, state, {**facing_log, **search_log})
+        _START_CACHE[key] = hit
+        while len(_START_CACHE) > START_CACHE_SIZE:
+            _START_CACHE.popitem(last=False)
+    _START_CACHE.move_to_end(key)
+    _, state, log = hit
+    fresh = {k: v.detach().clone() for k, v in state.latents.items()}
+    clone = lambda x: None if x is None else x.detach().clone()  # noqa: E731
+    out = FitState(adapter=state.adapter, latents=fresh, shape_param=clone(state.shape_param), obs_t=state.obs_t,
+                   window_s=state.window_s, root=clone(state.root), trans=clone(state.trans),
+                   heading=clone(state.heading), offset=clone(state.offset), bounded_shape=state.bounded_shape)
+    return out, copy.deepcopy(log)
+
+
+def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, generator: torch.Generator, device,
+                  lr: float, lambda_prior: float) -> tuple[FitState, dict]:
+    """A window or continuous prior's start under ``start_search: observation`` (table1 protocol v5):
+    the prior-free body's start on the observation (:func:`prior_free_start`: facing, then limb by
+    limb), at the output timestamps, encoded by the prior (``encode_motion``: the posterior mean);
+    its body shape; the free rigid parameters set to its root orientation and translation at the
+    observed frames (:func:`~benchmark.protocols.fit_state.set_rigid`). Latents the encoder does not
+    return keep ``state``'s. A prior it does not apply to (:func:`supports_encoded_start`) keeps
+    ``state``. Returns the state and a log."""
+    if not supports_encoded_start(adapter):
+        return state, {"start_search": "none: a per-frame prior or a prior without a motion encoder"}
+    ref, ref_log = prior_free_start(body, batch, generator, device, lr, lambda_prior)
+    with torch.no_grad():
+        out_t = batch.output_timestamps
+        rot, trans = body_parameters(ref, out_t)
+        enc = adapter.encode_motion(rot, trans, out_t)
+        rot_obs, trans_obs = body_parameters(ref, batch.timestamps, observed=True)
+    latents = {}
+    for k, v in state.latents.items():
+        if k not in enc:
+            latents[k] = v
+            continue
+        e = enc[k].detach().to(v)
+        if e.shape != v.shape:
+            raise ValueError(f"start search: prior {adapter.name!r}: encode_motion's {k!r} has shape {tuple(e.shape)}, "
+                             f"its fit's latents {tuple(v.shape)} for the same window: they must agree")
+        latents[k] = e.clone().requires_grad_(v.requires_grad)
+    shape_param = state.shape_param
+    if ref.bounded_shape == state.bounded_shape and ref.shape_param.shape == state.shape_param.shape:
+        shape_param = ref.shape_param.detach().clone().requires_grad_(True)
+    clone = lambda x: None if x is None else x.detach().clone()  # noqa: E731
+    out = FitState(adapter=adapter, latents=latents, shape_param=shape_param, obs_t=state.obs_t,
+                   window_s=state.window_s, root=clone(state.root), trans=clone(state.trans),
+                   heading=clone(state.heading), offset=clone(state.offset), bounded_shape=state.bounded_shape)
+    set_rigid(out, batch.timestamps, rot_obs, trans_obs)
+    for p in (out.root, out.trans, out.heading, out.offset):
+        if p is not None:
+            p.requires_grad_(True)
+    return out, {"start_choice_counts": ref_log.get("start_choice_counts", []), "start": "encoded prior-free start"}
