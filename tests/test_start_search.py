@@ -204,9 +204,9 @@ def test_encoded_start_is_the_prior_free_start_encoded(anny_body, monkeypatch, p
 
 
 def test_encoded_start_leaves_per_frame_priors_and_is_searched_once(anny_body, monkeypatch):
-    """Per-frame priors keep their own limb search (no-prior's fit is the same under "observation"
-    as under "limbs", bit for bit); the prior-free start runs once per observation and is served as a
-    fresh copy."""
+    """Per-frame priors keep their own limb search: no-prior's fit under "observation" (its start
+    served from the prior-free start's cache) is the same as under "limbs" (searched in the fit), bit
+    for bit; the prior-free start runs once per observation and is served as a fresh copy."""
     from benchmark.protocols import start_search
 
     _fresh_cache(monkeypatch)
@@ -224,6 +224,9 @@ def test_encoded_start_leaves_per_frame_priors_and_is_searched_once(anny_body, m
         runs.append((st, info))
     assert torch.equal(runs[0][0].latents["pose"], runs[1][0].latents["pose"])
     assert torch.equal(runs[0][1]["data_trace"], runs[1][1]["data_trace"])
+    # under "observation" no-prior's start came from the cache the window priors share
+    assert runs[1][1]["facing_yaw_rad"] == runs[0][1]["facing_yaw_rad"] and len(start_search._START_CACHE) == 1
+    _fresh_cache(monkeypatch)
     calls = []
     real = start_search.limb_start_search
     monkeypatch.setattr(start_search, "limb_start_search", lambda *a, **k: calls.append(1) or real(*a, **k))

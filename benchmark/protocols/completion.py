@@ -38,7 +38,8 @@ from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, HEADI
                                              _repeat_batch, _rigid_parameters, _set_yaw, _subset_batch, apply_free_rigid,
                                              body_parameters, frame_chamfer, init_state, initial_latents, optimise,
                                              parameter_groups)
-from benchmark.protocols.start_search import START_SEARCH_RULES, encoded_start, limb_start_search
+from benchmark.protocols.start_search import (START_SEARCH_RULES, encoded_start, is_prior_free, limb_start_search,
+                                              prior_free_start)
 from priors.base import FitBatch, PriorAdapter
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,15 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     data_term = StaticChamfer(batch.points.flatten(0, 1), batch.lengths.flatten(0, 1))
     facing_log = {}
     t_facing = time.perf_counter()
-    if facing == "search":
+    if start_search not in START_SEARCH_RULES:
+        raise ValueError(f"fit: unknown start search {start_search!r}; choose one of {', '.join(START_SEARCH_RULES)}")
+    own_start = start_search == "observation" and facing == "observation" and is_prior_free(adapter)
+    if own_start:  # the prior-free start (facing, limb search) is this fit's start: computed once per observation
+        state, facing_log = prior_free_start(body, batch, generator, device, lr, lambda_prior)
+        state.adapter = adapter
+        for p in state.parameters():
+            p.requires_grad_(True)
+    elif facing == "search":
         state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)
     elif facing == "observation":
         state, facing_log = observed_facing(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)
@@ -89,10 +98,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     if points_per_step is not None:
         sampler = torch.Generator().manual_seed(int(torch.randint(0, 2**62, (1,), generator=generator)))
 
-    if start_search not in START_SEARCH_RULES:
-        raise ValueError(f"fit: unknown start search {start_search!r}; choose one of {', '.join(START_SEARCH_RULES)}")
     facing_log["facing_s"] = time.perf_counter() - t_facing
-    if start_search in ("limbs", "observation"):
+    if start_search in ("limbs", "observation") and not own_start:
         t_search = time.perf_counter()
         state, search_log = limb_start_search(adapter, body, batch, state, lr, lambda_prior)
         if start_search == "observation" and "start_choice_counts" not in search_log:

@@ -165,6 +165,14 @@ def supports_encoded_start(adapter: PriorAdapter) -> bool:
     return adapter.window.kind != "per-frame" and has_motion_encoder(adapter)
 
 
+def is_prior_free(adapter: PriorAdapter) -> bool:
+    """Whether ``adapter`` is the prior-free body of :func:`prior_free_start` (no-prior: no weights,
+    nothing to configure), whose own fit then starts from that start, served from the cache."""
+    from priors.no_prior import NoPrior
+
+    return type(adapter) is NoPrior
+
+
 # prior_free_start's results in this process, by observation: every prior of a table cell sees the
 # same observation, so the prior-free search runs once per cell and worker, not once per prior.
 _START_CACHE: OrderedDict = OrderedDict()
