@@ -257,3 +257,11 @@ class PriorAdapter(torch.nn.Module):
 
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+
+def has_motion_encoder(adapter) -> bool:
+    """True when the adapter declares an encoder and implements ``encode_motion``."""
+    if not getattr(adapter, "has_encoder", False):
+        return False
+    method = getattr(type(adapter), "encode_motion", None)
+    return method is not None and method is not PriorAdapter.encode_motion

@@ -100,7 +100,7 @@ def test_every_prior_fits_through_the_facing_search(anny_body, prior):
 def test_observation_facing_is_searched_once_per_observation(anny_body, monkeypatch):
     """Every prior of a cell sees the same observation: the prior-free facing search runs once per
     observation and process, and the result served again is bit for bit the one computed afresh."""
-    from benchmark.protocols import completion
+    from benchmark.protocols import facing as completion  # the facing search's module (completion re-exports it)
 
     scans, _ = make_scans(anny_body, [_turned_walker(math.pi, frames=6)], fps=10.0, num_points=120, seed=0)
     batch = observation_batch(scans, 0.6, (torch.arange(4, dtype=torch.float64) / 6.0)[None], "cpu")

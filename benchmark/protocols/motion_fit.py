@@ -49,7 +49,7 @@ import torch
 from benchmark.protocols.completion import FitState, body_parameters, init_state, optimise
 from benchmark.protocols.fit_state import set_rigid
 from benchmark.skeleton import NUM_JOINTS
-from priors.base import FitBatch, PriorAdapter
+from priors.base import FitBatch, has_motion_encoder  # noqa: F401  (has_motion_encoder: re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -59,14 +59,6 @@ MM2 = 1e6  # m^2 -> mm^2
 # --------------------------------------------------------------------------------------------
 # Adapter capabilities
 # --------------------------------------------------------------------------------------------
-
-def has_motion_encoder(adapter) -> bool:
-    """True when the adapter declares an encoder and implements ``encode_motion``."""
-    if not getattr(adapter, "has_encoder", False):
-        return False
-    method = getattr(type(adapter), "encode_motion", None)
-    return method is not None and method is not PriorAdapter.encode_motion
-
 
 def is_interpolation_baseline(adapter) -> bool:
     """The SLERP baseline (priors/slerp.py): latents are the observation, no optimisation."""

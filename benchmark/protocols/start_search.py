@@ -19,7 +19,7 @@ from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitBatch, FitState, _repeat_batch,
                                               _rigid_parameters, _subset_batch, body_parameters, frame_chamfer,
                                               optimise, set_rigid)
-from priors.base import PriorAdapter
+from priors.base import PriorAdapter, has_motion_encoder
 
 # objective.start_search: "none"; "limbs" (table1 protocol v4): :func:`limb_start_search` for the
 # per-frame priors; "observation" (v5): the same, and every other prior with a motion encoder starts
@@ -160,8 +160,6 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
 def supports_encoded_start(adapter: PriorAdapter) -> bool:
     """Whether :func:`encoded_start` applies: a prior that is not per-frame (those search their own
     start, :func:`limb_start_search`) and has a motion encoder (``has_encoder`` and ``encode_motion``)."""
-    from benchmark.protocols.motion_fit import has_motion_encoder
-
     return adapter.window.kind != "per-frame" and has_motion_encoder(adapter)
 
 
@@ -183,11 +181,11 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
                      lambda_prior: float) -> tuple[FitState, dict]:
     """The prior-free body's start on the observation (the state no-prior's fit starts from under
     ``start_search: limbs``): its facing found on the observation
-    (:func:`benchmark.protocols.completion.observed_facing`), then :func:`limb_start_search`.
+    (:func:`benchmark.protocols.facing.observed_facing`), then :func:`limb_start_search`.
     Deterministic (the prior-free body draws nothing from ``generator``); kept per process for the
     last START_CACHE_SIZE observations and served again as a fresh copy. Returns the state and the
     search's log."""
-    from benchmark.protocols.completion import _facing_key, observed_facing
+    from benchmark.protocols.facing import _facing_key, observed_facing
     from priors.no_prior import NoPrior
 
     key = ("start", *_facing_key(body, batch, device, lr, lambda_prior), repr(LIMB_START_STAGES), START_SEARCH_STEPS)
