@@ -84,8 +84,6 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     if own_start:  # the prior-free start (facing, limb search) is this fit's start: computed once per observation
         state, facing_log = prior_free_start(body, batch, generator, device, lr, lambda_prior)
         state.adapter = adapter
-        for p in state.parameters():
-            p.requires_grad_(True)
     elif facing == "search":
         state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)
     elif facing == "observation":

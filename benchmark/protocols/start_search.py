@@ -10,6 +10,7 @@ the forearms into local minima of the data term (table1.yaml, version 4).
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections import OrderedDict
 
 import roma
@@ -200,12 +201,15 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
             _START_CACHE.popitem(last=False)
     _START_CACHE.move_to_end(key)
     _, state, log = hit
-    fresh = {k: v.detach().clone() for k, v in state.latents.items()}
-    clone = lambda x: None if x is None else x.detach().clone()  # noqa: E731
-    out = FitState(adapter=state.adapter, latents=fresh, shape_param=clone(state.shape_param), obs_t=state.obs_t,
-                   window_s=state.window_s, root=clone(state.root), trans=clone(state.trans),
-                   heading=clone(state.heading), offset=clone(state.offset), bounded_shape=state.bounded_shape)
-    return out, copy.deepcopy(log)
+    return _leaf_copy(state), copy.deepcopy(log)
+
+
+def _leaf_copy(state: FitState, **changes) -> FitState:
+    """``state`` with every variable a fresh leaf copy that requires grad, then ``changes`` applied."""
+    leaf = lambda x: None if x is None else x.detach().clone().requires_grad_(True)  # noqa: E731
+    fields = {"latents": {k: leaf(v) for k, v in state.latents.items()}, "shape_param": leaf(state.shape_param),
+              **{name: leaf(getattr(state, name)) for name in ("root", "trans", "heading", "offset")}}
+    return dataclasses.replace(state, **{**fields, **changes})
 
 
 def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, generator: torch.Generator, device,
@@ -227,23 +231,14 @@ def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState,
         rot_obs, trans_obs = body_parameters(ref, batch.timestamps, observed=True)
     latents = {}
     for k, v in state.latents.items():
-        if k not in enc:
-            latents[k] = v
-            continue
-        e = enc[k].detach().to(v)
+        e = enc.get(k, v).detach().to(v)
         if e.shape != v.shape:
             raise ValueError(f"start search: prior {adapter.name!r}: encode_motion's {k!r} has shape {tuple(e.shape)}, "
                              f"its fit's latents {tuple(v.shape)} for the same window: they must agree")
-        latents[k] = e.clone().requires_grad_(v.requires_grad)
+        latents[k] = e
     shape_param = state.shape_param
     if ref.bounded_shape == state.bounded_shape and ref.shape_param.shape == state.shape_param.shape:
-        shape_param = ref.shape_param.detach().clone().requires_grad_(True)
-    clone = lambda x: None if x is None else x.detach().clone()  # noqa: E731
-    out = FitState(adapter=adapter, latents=latents, shape_param=shape_param, obs_t=state.obs_t,
-                   window_s=state.window_s, root=clone(state.root), trans=clone(state.trans),
-                   heading=clone(state.heading), offset=clone(state.offset), bounded_shape=state.bounded_shape)
+        shape_param = ref.shape_param
+    out = _leaf_copy(dataclasses.replace(state, latents=latents, shape_param=shape_param))
     set_rigid(out, batch.timestamps, rot_obs, trans_obs)
-    for p in (out.root, out.trans, out.heading, out.offset):
-        if p is not None:
-            p.requires_grad_(True)
     return out, {"start_choice_counts": ref_log.get("start_choice_counts", []), "start": "encoded prior-free start"}
