@@ -55,3 +55,45 @@ def test_scan_trees_follow_the_scans(anny_body):
     ref = evaluate_reference(anny_body, output, data, "cpu", surface_points=300)
     assert got[0]["sums"]["chamfer_m"] == pytest.approx(ref[0]["sums"]["chamfer_m"], abs=1e-9)
     assert len(data.cache) == 1
+
+
+def test_surface_kernel_equals_array_path_bit_for_bit(anny_body, monkeypatch):
+    """The compiled scan -> surface kernel and the array path give the same doubles (the table's
+    numbers cannot depend on whether numba is installed); the far-off frame included."""
+    import benchmark.metrics.surface_kernel as sk
+    from benchmark.protocols.completion_unit import evaluate
+
+    if not sk.HAVE_NUMBA:
+        pytest.skip("numba is not installed: the evaluation runs its array path")
+    output, data = _unit(anny_body, frames=3, seed=2)
+    kernel = evaluate(anny_body, output, data, "cpu", surface_points=800)
+    monkeypatch.setattr(sk, "HAVE_NUMBA", False)
+    arrays = evaluate(anny_body, output, data, "cpu", surface_points=800)
+    assert kernel == arrays
+
+
+def test_surface_kernel_by_hand_and_degenerate_triangles():
+    """Hand-checked distances: a point above a triangle's interior, one beyond a vertex, one beyond
+    an edge; a zero-area (collinear) triangle is measured as its edges; the vertex distance wins
+    when it is smaller, and a triangle far beyond the running minimum changes nothing."""
+    import numpy as np
+
+    import benchmark.metrics.surface_kernel as sk
+
+    if not sk.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0],  # right triangle in z = 0
+                      [5, 0, 0], [6, 0, 0], [7, 0, 0],  # collinear: zero area
+                      [50, 50, 50], [51, 50, 50], [50, 51, 50]], dtype=np.float64)
+    faces = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]], dtype=np.int64)
+    vertex_faces = np.full((9, 1), 3, dtype=np.int64)
+    vertex_faces[:, 0] = [0, 0, 0, 1, 1, 1, 2, 2, 2]
+    points = np.array([[0.2, 0.2, 0.5],   # above the interior: 0.5
+                       [-1.0, -1.0, 0.0],  # beyond vertex A: sqrt(2)
+                       [0.5, -2.0, 0.0],   # beyond edge AB: 2
+                       [6.5, 3.0, 4.0],    # the zero-area triangle's segment [5, 7] x: 5
+                       [0.2, 0.2, 0.5]])   # vertex distance 0.1 given: stays 0.1
+    knn = np.array([[0, 6], [0, 6], [1, 6], [4, 6], [0, 6]], dtype=np.int64)
+    vd = np.array([9.0, 9.0, 9.0, 9.0, 0.1])
+    got = sk.scan_to_surface_knn(points, verts, faces, vertex_faces, knn, vd)
+    assert got == pytest.approx([0.5, 2 ** 0.5, 2.0, 5.0, 0.1], abs=1e-12)
