@@ -188,8 +188,8 @@ def surface_compare(n_points: int = 2000, slow_points: int = 200, repeats: int =
     from benchmark.body.anny_body import load_anny_body
     from benchmark.metrics.chamfer import build_tree, query_tree
     from benchmark.metrics.surface import points_to_surface_distance
-    from benchmark.protocols.completion_unit import (SURFACE_K, _scan_to_surface_frame, _vertex_faces,
-                                                     scan_to_surface_distance)
+    from benchmark.protocols.completion_unit import (SURFACE_K, _vertex_faces, scan_to_surface_distance,
+                                                     scan_to_surface_frame)
 
     body = load_anny_body("cpu")
     out, _, scan = _posed_mesh(body)
@@ -197,13 +197,13 @@ def surface_compare(n_points: int = 2000, slow_points: int = 200, repeats: int =
     pts = scan[0, 0, :n_points].float()
     faces = body.faces.cpu()
     vf = _vertex_faces(faces, verts.shape[0])
-    vf_np, faces_t = vf.numpy(), np.ascontiguousarray(faces.numpy().T)
+    vf_np, faces_np = vf.numpy(), np.ascontiguousarray(faces.numpy(), dtype=np.int64)
 
     def project():
         tree = build_tree(verts.double().numpy())
         d, nn = query_tree(tree, pts.double().numpy(), k=SURFACE_K)
         vd = (pts - verts[nn[:, 0]]).norm(dim=-1)
-        return _scan_to_surface_frame(pts, verts, faces_t, vf_np, nn, vd)
+        return scan_to_surface_frame(pts, verts, faces_np, vf_np, nn, vd)
 
     def reference():
         from benchmark.metrics.chamfer import nearest_neighbors

@@ -91,7 +91,6 @@ def evaluate(body, output, data: UnitData, device, surface_points: int | None = 
     distance; frames run on parallel threads (:func:`benchmark.metrics.chamfer.cpu_threads`).
     """
     from benchmark.metrics.chamfer import _map_elements, build_tree, query_tree
-    from benchmark.metrics.surface_kernel import HAVE_NUMBA, scan_to_surface_knn
 
     verts = output.vertices.to("cpu", torch.float32)
     B, T = verts.shape[:2]
@@ -125,16 +124,10 @@ def evaluate(body, output, data: UnitData, device, surface_points: int | None = 
     chamfer = 0.5 * (vert_to_scan + d_gv.mean(1))
     faces = body.faces.cpu()
     vertex_faces = _vertex_faces(faces, n_verts).numpy()
-    if HAVE_NUMBA:  # the compiled kernel: the same doubles, a fraction of the work (surface_kernel)
-        faces_np, d_np = np.ascontiguousarray(faces.numpy(), dtype=np.int64), d_gv.double().numpy()
-        scan_to_surface = torch.stack(_map_elements(
-            lambda i: torch.from_numpy(scan_to_surface_knn(g_np[i, :n_surf], v_np[i], faces_np, vertex_faces, knn[i],
-                                                           d_np[i, :n_surf])).mean(), n_frames))
-    else:
-        faces_t = np.ascontiguousarray(faces.numpy().T)
-        scan_to_surface = torch.stack(_map_elements(
-            lambda i: _scan_to_surface_frame(g_flat[i, :n_surf], v_flat[i], faces_t, vertex_faces, knn[i],
-                                             d_gv[i, :n_surf]), n_frames))
+    faces_np = np.ascontiguousarray(faces.numpy(), dtype=np.int64)
+    scan_to_surface = torch.stack(_map_elements(
+        lambda i: scan_to_surface_frame(g_flat[i, :n_surf], v_flat[i], faces_np, vertex_faces, knn[i], d_gv[i, :n_surf]),
+        n_frames))
     surface = 0.5 * (vert_to_scan.double() + scan_to_surface)
     return _sequence_sums(chamfer, surface, output, data, verts)
 
@@ -181,6 +174,22 @@ def _vertex_faces(faces: torch.Tensor, n_verts: int) -> torch.Tensor:
     idx = starts[:, None] + slot[None]
     valid = slot[None] < counts[:, None]
     return torch.where(valid, (order // 3)[idx.clamp_max(order.numel() - 1)], torch.full_like(idx, F))
+
+
+def scan_to_surface_frame(points: torch.Tensor, vertices: torch.Tensor, faces: np.ndarray, vertex_faces: np.ndarray,
+                          knn: np.ndarray, vertex_distance: torch.Tensor) -> torch.Tensor:
+    """One frame's scan -> surface mean (float64 scalar): min(vertex distance, exact distance to the
+    triangles incident to each point's ``knn`` (P, k) nearest vertices), averaged over the (P, 3)
+    ``points``. ``faces`` (F, 3) int64; ``vertex_faces`` (V, width) as :func:`_vertex_faces` gives.
+    The compiled kernel (:mod:`benchmark.metrics.surface_kernel`) where numba is installed, else the
+    array path (:func:`_scan_to_surface_frame`): the same doubles either way (tested)."""
+    from benchmark.metrics.surface_kernel import HAVE_NUMBA, scan_to_surface_knn
+
+    if HAVE_NUMBA:
+        best = scan_to_surface_knn(points.numpy(), vertices.numpy(), faces, vertex_faces, knn,
+                                   vertex_distance.double().numpy())
+        return torch.from_numpy(best).mean()
+    return _scan_to_surface_frame(points, vertices, np.ascontiguousarray(faces.T), vertex_faces, knn, vertex_distance)
 
 
 def _scan_to_surface_frame(points: torch.Tensor, vertices: torch.Tensor, faces_t: np.ndarray,
