@@ -35,8 +35,8 @@ arbitrary motion every 2 s [project extension, so that the reconstruction table'
 normalisation range is its mean +- 2 standard deviations (``trans_range_std``; None: the paper's
 min-max, 17-19 m wide on the synthetic split, which left the root 0.4-0.7 m off); KL weight 1e-3
 in phase 1 and 1e-4 in phase 2 (GradNorm drives the spatial weight to its 1e-3 floor, against
-which the paper's 0.01 made the KL dominate). Default 5000 steps (4500 + 500; train.py's
-docstring), about 15 min on one shared core (``train_embedded``).
+which the paper's 0.01 made the KL dominate). Default 15,000 steps (13,500 + 1,500; train.py's
+DEFAULT_STEPS), about 41 min on one shared core (``train_embedded``).
 
 Adapter (adapter.py): window kind "continuous": the decoder's 100 anchors (predicted timestamps
 tau_hat) are spread affinely over the window [0, window_s] and SLERP / LERP-ed to any timestamps
