@@ -38,6 +38,8 @@ METRIC_NAMES = {
     "v2v": "V2V",
     "accel": "Acceleration",
     "accer": "Acceleration error",
+    "root": "Root error",
+    "gt_travel": "Ground-truth root travel",
 }
 UNIT_SUFFIXES = ("mm", "cm", "m", "deg", "rad", "s")
 # How a grid axis value is shown in a column label.

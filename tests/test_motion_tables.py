@@ -190,6 +190,19 @@ def test_reconstruction_units(anny_body, motions, vposer):
     exact = _values(_run(reconstruction, spec, SlerpBaseline(), anny_body, src, {"window": 2.0}), spec)
     assert exact["mpjpe_mm"] < 1e-2 and exact["v2v_mm"] < 1e-2 and exact["accer"] < 1e-2
     assert exact["accel"] == pytest.approx(exact["gt_accel"], rel=1e-3)
+    assert exact["root_mm"] < 1e-2 and exact["gt_travel_mm"] == pytest.approx(v["gt_travel_mm"])
+
+
+def test_root_path_errors_by_hand():
+    # ground truth: the root walks 1 m along x in 3 equal steps; the decoded root stays 0.1 m to the side
+    # for the first two frames and lands on the ground truth for the last two
+    gt = torch.zeros(1, 4, 2, 3)
+    gt[0, :, 0, 0] = torch.tensor([0.0, 1 / 3, 2 / 3, 1.0])
+    dec = gt.clone()
+    dec[0, :2, 0, 2] += 0.1
+    dec[0, :, 1] += 5.0  # other joints do not count
+    root, travel = reconstruction.root_path_errors(dec, gt)
+    assert root == pytest.approx([0.05]) and travel == pytest.approx([1.0])
 
 
 # -------------------------------------------------------------------------------- end to end

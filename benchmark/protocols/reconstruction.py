@@ -17,7 +17,12 @@ optimisation. Priors without an encoder are n/a ("no encoder").
 Metrics (sums over the window's frames; the table divides by frames): ``mpjpe_m``, ``pa_mpjpe_m``,
 ``v2v_m``, ``accel`` / ``gt_accel`` (mean joint acceleration magnitude of the output / the ground
 truth, m/s^2), ``accer`` (acceleration error, m/s^2); the acceleration metrics are the
-sequence means times its frame count.
+sequence means times its frame count. ``root_m``: the distance between the decoded and the
+ground-truth root joint (pelvis) per frame (after the table's rigid alignment: the decoded root
+path's shape, not its mean offset); ``gt_travel_m``: the ground-truth root's path length over the
+window, times the frame count (so that the table shows the travel itself). The per-sequence ratio
+``root_m / gt_travel_m`` is what "the decoded root path follows the ground truth's within x % of the
+distance travelled" means (:func:`root_path_errors`).
 """
 
 from __future__ import annotations
@@ -34,6 +39,15 @@ from benchmark.protocols.motion_fit import (
 )
 
 NO_ENCODER = "no encoder: the prior cannot encode a motion (has_encoder is False or encode_motion is missing)"
+
+
+def root_path_errors(joints: torch.Tensor, gt_joints: torch.Tensor) -> tuple[list[float], list[float]]:
+    """joints, gt_joints (B, T, J, 3), root first -> (mean root distance per sequence (B,), m;
+    the ground-truth root's path length per sequence (B,), m)."""
+    root, gt = joints[..., 0, :].double(), gt_joints[..., 0, :].double()
+    err = (root - gt).norm(dim=-1).mean(-1)
+    travel = (gt[:, 1:] - gt[:, :-1]).norm(dim=-1).sum(-1)
+    return err.tolist(), travel.tolist()
 
 
 # -- the protocol-module interface (benchmark.protocols.table_run.PROTOCOL_MODULES) ----------------
@@ -80,9 +94,11 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: MotionSourc
     accel = mean_acceleration(joints, fps)
     gt_accel = mean_acceleration(clean.joints, fps)
     accer = acceleration_error(joints, clean.joints, fps)
+    root, travel = root_path_errors(joints, clean.joints)
     per_seq = [
         {"frames": T, "sums": {"mpjpe_m": err[b], "pa_mpjpe_m": pa[b], "v2v_m": v2v[b], "accel": accel[b] * T,
-                               "gt_accel": gt_accel[b] * T, "accer": accer[b] * T}}
+                               "gt_accel": gt_accel[b] * T, "accer": accer[b] * T,
+                               "root_m": root[b] * T, "gt_travel_m": travel[b] * T}}
         for b in range(B)
     ]
     eval_s = time.perf_counter() - t_eval
