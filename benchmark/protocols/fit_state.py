@@ -240,7 +240,7 @@ def optimise(prior_name: str, parameters, steps: int, lr: float, lr_final_fracti
         if step == 0 or step == steps - 1 or step % LOG_EVERY == 0:
             history.append({"step": step, **log()})
         if callback is not None:
-            callback(step, float(loss))
+            callback(step, float(loss.detach()))
     return history
 
 
