@@ -18,7 +18,9 @@ Nothing but the backend may change a number, and it does not:
   the same on any worker, in any order; the tests check bit-identity against the serial run.
 
 Units are submitted longest-first (:func:`longest_first`), so the slowest units do not start last
-and leave the other workers idle at the end.
+and leave the other workers idle at the end. The local process backend keeps a worker on the cells
+it has started (:func:`pick_next`): the prior-free start of a table1 cell is cached per worker
+process, so two workers on one cell would each compute it.
 
 A unit that raises on a worker comes back as a :class:`UnitError` carrying the worker's traceback;
 the other units go on. A worker process that dies (out of memory, a crash in native code) fails
@@ -77,6 +79,34 @@ def longest_first(units: Sequence, execute=None) -> list:
     costs = [float(cost_of(u)) for u in units]
     order = sorted(range(len(units)), key=lambda i: (-costs[i], i))
     return [units[i] for i in order]
+
+
+def affinity_key(unit) -> tuple:
+    """What a worker process caches between units (:func:`~benchmark.protocols.start_search.prior_free_start`
+    keeps the prior-free start per observation): units with the same key share the cache. The key is
+    the unit's cell and sequences (every prior of a table cell sees the same observation)."""
+    cell = getattr(unit, "cell", None) or {}
+    return (tuple(sorted((str(k), repr(v)) for k, v in cell.items())), tuple(getattr(unit, "sequence_ids", ()) or ()))
+
+
+def pick_next(queue: deque, mine: set, claimed: set):
+    """Remove and return the unit a free worker runs next: the first queued unit of a cell that
+    worker has run before (its caches are warm), else of a cell no worker has started, else the
+    first queued unit. ``mine``: the worker's affinity keys; ``claimed``: every worker's. The queue
+    stays longest-first within each choice, so a worker keeps to its cells and only takes another
+    worker's cell when none of its own or unstarted ones are left (no idle worker at the end)."""
+    first_free = None
+    for i, unit in enumerate(queue):
+        key = affinity_key(unit)
+        if key in mine:
+            break
+        if first_free is None and key not in claimed:
+            first_free = i
+    else:
+        i = first_free if first_free is not None else 0
+    unit = queue[i]
+    del queue[i]
+    return unit
 
 
 # --------------------------------------------------------------------------------------------
@@ -252,7 +282,8 @@ class ProcessBackend:
             fh.write(payload)
         del payload
         ctx = mp.get_context(self.start_method)
-        workers: list[dict] = []  # {"proc", "conn", "unit", "ready"}
+        workers: list[dict] = []  # {"proc", "conn", "unit", "ready", "keys"}
+        claimed: set = set()  # affinity keys of the units any worker has started
 
         def start() -> None:
             parent, child = ctx.Pipe(duplex=True)
@@ -260,7 +291,7 @@ class ProcessBackend:
                                name="benchmark-unit-worker", daemon=True)
             proc.start()
             child.close()
-            workers.append({"proc": proc, "conn": parent, "unit": None, "ready": False})
+            workers.append({"proc": proc, "conn": parent, "unit": None, "ready": False, "keys": set()})
 
         def retire(w: dict) -> None:
             workers.remove(w)
@@ -279,7 +310,10 @@ class ProcessBackend:
                     pass
                 retire(w)
                 return
-            w["unit"] = queue.popleft()
+            w["unit"] = pick_next(queue, w["keys"], claimed)
+            key = affinity_key(w["unit"])
+            w["keys"].add(key)
+            claimed.add(key)
             try:
                 w["conn"].send(w["unit"])
             except OSError:  # it is gone: the unit goes to a fresh worker

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from benchmark import runner
-from benchmark.backends import ProcessBackend, RayBackend, estimate_cost, longest_first, make_backend
+from benchmark.backends import ProcessBackend, RayBackend, affinity_key, estimate_cost, longest_first, make_backend, pick_next
 from benchmark.catalog import get_profile, load_table_spec
 from benchmark.protocols.table_run import run_table
 from fake_units import FakeExecutor, plan
@@ -170,6 +170,35 @@ def test_units_go_longest_first_and_ties_keep_the_plan_order():
             return -estimate_cost(unit)
 
     assert longest_first(units, Reverse())[0].cell == {"points": 100, "fps": 5}
+
+
+def test_a_worker_keeps_to_its_cells_and_takes_others_only_at_the_end():
+    from collections import deque
+
+    spec = load_table_spec("table1")
+    units = longest_first(plan(spec=spec, priors=["no-prior", "hmvae", "vposer-slerp"], seqs=("s0",)))
+    queue = deque(units)
+    workers = [set(), set()]
+    claimed: set = set()
+    taken = [[], []]
+    turn = 0
+    while queue:
+        u = pick_next(queue, workers[turn], claimed)
+        workers[turn].add(affinity_key(u))
+        claimed.add(affinity_key(u))
+        taken[turn].append(u)
+        turn = 1 - turn
+    assert sorted(u.unit_id for t in taken for u in t) == sorted(u.unit_id for u in units)  # each unit once
+    # the two workers start different cells, the longest two, and each opens a cell only when its own are done
+    assert taken[0][0].cell == {"points": 10000, "fps": 10} and taken[1][0].cell == {"points": 10000, "fps": 5}
+    for t in taken:
+        keys = [affinity_key(u) for u in t]
+        opened = [k for i, k in enumerate(keys) if k not in keys[:i]]
+        for k in opened[:-1]:  # a cell is finished (by this worker) before the next is opened, but the last
+            last = max(i for i, x in enumerate(keys) if x == k)
+            assert all(x == k for x in keys[keys.index(k): last + 1])
+    # 6 cells of 3 units on 2 workers: each cell is run by one worker
+    assert not ({affinity_key(u) for u in taken[0]} & {affinity_key(u) for u in taken[1]})
 
 
 def test_backend_options_are_checked():

@@ -322,3 +322,51 @@ def test_onnx_export_parity(adapter, tmp_path):
         assert torch.allclose(torch.from_numpy(o), r, rtol=1e-3, atol=1e-5)
     dec = adapter.decode({"x0": x0, "z": z}, (torch.arange(z.shape[1] + 1, dtype=torch.float64) / 30).expand(3, -1))
     assert torch.allclose(dec.rotations, ref[0], atol=1e-5)
+
+
+# -- the feedback wiring ----------------------------------------------------------------------
+def test_feedback_encoder_reads_the_decoded_state(tmp_path):
+    torch.manual_seed(0)
+    plain = MotionDVAE(**dict(TINY, feedback=False)).eval()
+    fb = MotionDVAE(**dict(TINY, feedback=True)).eval()
+    fb.load_state_dict(plain.state_dict())  # the same parameters, two wirings
+    with torch.no_grad():
+        for m in (plain.decoder,):  # a non-zero decoder, so the decoded state moves off x_0
+            m.net[-1].weight.normal_(0, 0.1)
+        fb.load_state_dict(plain.state_dict())
+        xn = torch.randn(3, 7, 138)
+        z_p, m_p, _, h_p, x_p = plain.infer(plain.encoder, xn, xn[:, 0], sample=False)
+        z_f, m_f, _, h_f, x_f = fb.infer(fb.encoder, xn, xn[:, 0], sample=False)
+        # the step-by-step generative pass equals the one-call decode of the same z
+        assert torch.allclose(x_f, fb.decode_normalised(xn[:, 0], z_f), atol=1e-5)
+        assert torch.allclose(h_f, fb.gen_features(xn[:, 0], z_f), atol=1e-5)
+        assert torch.allclose(x_p, plain.decode_normalised(xn[:, 0], z_p))
+    # the first latent sees x_0 in both wirings; the next ones see the decoded state with feedback
+    assert torch.allclose(m_f[:, 0], m_p[:, 0], atol=1e-6)
+    assert not torch.allclose(m_f[:, 1:], m_p[:, 1:], atol=1e-4)
+    # the wiring travels with the checkpoint; an older checkpoint without the key is the plain wiring
+    path = training.save_checkpoint(tmp_path / "motion_dvae.pt", fb.state_dict(), fb.config)
+    assert MotionDVAEPrior(size="embedded", weights=str(path)).net.feedback is True
+    old = {k: v for k, v in fb.config.items() if k != "feedback"}
+    path = training.save_checkpoint(tmp_path / "old.pt", fb.state_dict(), old)
+    assert MotionDVAEPrior(size="embedded", weights=str(path)).net.feedback is False
+
+
+def test_encoder_only_training_keeps_the_generative_model(tmp_path):
+    windows = smooth_windows(16, 8, seed=3)
+    base, _ = train_motion_dvae(None, steps=2, denoise_steps=1, config=TINY, batch_size=8, windows=windows,
+                                rest_joints=REST, log_every=10)
+    path = training.save_checkpoint(tmp_path / "motion_dvae.pt", base.state_dict(), base.config)
+    model, record = train_motion_dvae(None, steps=3, denoise_steps=0, config=TINY, batch_size=8, windows=windows,
+                                      rest_joints=REST, log_every=10, init_weights=path, init_denoise=True,
+                                      train_generative=False, lr=1e-2)
+    before, after = base.state_dict(), model.state_dict()
+    for k in before:
+        part = k.split(".")[0]
+        if part in ("gen_rnn", "prior_mean", "prior_logvar", "decoder", "dec_logvar", "denoise_encoder", "init_state", "noise"):
+            assert torch.equal(before[k], after[k]), k
+    assert any(not torch.equal(before[k], after[k]) for k in before if k.startswith("encoder."))
+    assert record["phase_dvae"]["trained"] == ["encoder"] and record["phase_denoise"]["trained"] == []
+    with pytest.raises(ValueError, match="needs init_weights"):
+        train_motion_dvae(None, steps=1, denoise_steps=0, config=TINY, windows=windows, rest_joints=REST,
+                          train_generative=False)

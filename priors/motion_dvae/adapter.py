@@ -205,7 +205,7 @@ class MotionDVAEPrior(PriorAdapter):
         """
         states, *_ = self._prepare(rotations, trans, timestamps, "encode_motion")
         xn = self.net.normalise(states)
-        z, _, _ = self.net.encoder(xn, xn[:, 0], sample=False)
+        z = self.net.encode_means(xn)
         return {"x0": states[:, 0].clone(), "z": z}
 
     def denoise_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor,

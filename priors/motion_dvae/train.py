@@ -91,6 +91,9 @@ def train_motion_dvae(
     val_max_windows: int = 512,
     init_weights: str | Path | None = None,
     init_denoise: bool = False,
+    init_denoise_weights: str | Path | None = None,
+    train_generative: bool = True,
+    encoder_point_weight: float | None = None,
     kl_anneal_fraction: float | None = None,
 ) -> tuple[MotionDVAE, dict]:
     """Train the embedded Motion-DVAE (phase 1: DVAE on clean windows; phase 2: denoising networks on
@@ -106,7 +109,21 @@ def train_motion_dvae(
     init_weights: a project checkpoint (``motion_dvae.pt``) whose DVAE (generative model, clean
     encoder) and statistics buffers start phase 1 (a warm start; the denoising networks start fresh);
     then the KL weight is 1 from the first step unless ``kl_anneal_fraction`` says otherwise.
+    init_denoise: the denoising networks of ``init_weights`` start phase 2 too (a continued denoising
+    phase); init_denoise_weights: take them from this other checkpoint instead (it implies
+    init_denoise). train_generative=False: phase 1 trains the clean encoder only (prior, decoder and
+    their variance frozen: the completion tables, which use only the generative model, do not move).
+    encoder_point_weight: with train_generative=False, the weight of the squared point errors in
+    the clean encoder's loss (default POINT_WEIGHT, the DVAE's own). The clean encoder serves only
+    ``encode_motion`` (the reconstruction table, completion's encoded start); a larger weight fits it
+    to reconstruct more closely at the cost of more nats of KL, like a beta < 1 for the inference
+    network alone, while the generative model and its loss stay the DVAE's.
+    steps=0 / denoise_steps=0 skip a phase (the loaded networks are kept as they are).
     """
+    if init_denoise_weights is not None:
+        if init_weights is None:
+            raise ValueError("init_denoise_weights needs init_weights (the DVAE the denoising networks belong to)")
+        init_denoise = True
     cfg = dict(EMBEDDED_CONFIG, **(config or {}))
     data_info: dict = {}
     if windows is None:
@@ -159,13 +176,24 @@ def train_motion_dvae(
         if init_denoise:  # also the denoising networks (a continued denoising phase)
             keep = keep + ("denoise_encoder.", "init_state.", "noise.")
         part = {k: v.float() for k, v in sd.items() if k.startswith(keep)}
+        if init_denoise_weights is not None:
+            dsd, dcfg = read_project_checkpoint(Path(init_denoise_weights))
+            if {k: dcfg[k] for k in ("z_dim", "hidden", "mlp_hidden")} != {k: cfg[k] for k in ("z_dim", "hidden", "mlp_hidden")}:
+                raise ValueError(f"init_denoise_weights {init_denoise_weights}: config {dcfg} does not match {cfg}")
+            dkeep = ("denoise_encoder.", "init_state.", "noise.")
+            part.update({k: v.float() for k, v in dsd.items() if k.startswith(dkeep)})
         missing = [k for k in model.state_dict() if k.startswith(keep) and k not in part]
         if missing:
             raise ValueError(f"init_weights {init_weights}: missing {missing[:5]}")
         model.load_state_dict(part, strict=False)
         init_info = {"path": str(init_weights), "sha256": hashlib.sha256(Path(init_weights).read_bytes()).hexdigest(),
                      "loaded": "generative model, clean encoder, state statistics (its own, not recomputed)"
-                               + (", denoising networks (continued)" if init_denoise else "")}
+                               + (", denoising networks (continued)" if init_denoise and init_denoise_weights is None else "")}
+        if init_denoise_weights is not None:
+            init_info["denoise_networks"] = {
+                "path": str(init_denoise_weights),
+                "sha256": hashlib.sha256(Path(init_denoise_weights).read_bytes()).hexdigest(),
+                "loaded": "denoise_encoder, init_state, noise"}
     if kl_anneal_fraction is None:
         kl_anneal_fraction = 0.0 if init_weights is not None else KL_ANNEAL_FRACTION
 
@@ -183,15 +211,20 @@ def train_motion_dvae(
         with torch.no_grad():
             states = pose_to_state(batch)
             pts = body_points(*state_to_motion(states), m.rest_joints)
-        return m.dvae_loss(states, pts, beta)
+        return m.dvae_loss(states, pts, beta, point_weight=pw if m.training else POINT_WEIGHT)
 
     for p in model.parameters():
         p.requires_grad_(False)
-    gen_modules = [model.gen_rnn, model.prior_mean, model.prior_logvar, model.decoder, model.encoder]
-    for mod in gen_modules:
+    if not train_generative and init_weights is None:
+        raise ValueError("train_generative=False (encoder only) needs init_weights (a trained generative model)")
+    if encoder_point_weight is not None and train_generative:
+        raise ValueError("encoder_point_weight applies to encoder-only training (train_generative=False)")
+    pw = float(POINT_WEIGHT if encoder_point_weight is None else encoder_point_weight)
+    gen_modules = [model.gen_rnn, model.prior_mean, model.prior_logvar, model.decoder] if train_generative else []
+    for mod in gen_modules + [model.encoder]:
         for p in mod.parameters():
             p.requires_grad_(True)
-    model.dec_logvar.requires_grad_(True)
+    model.dec_logvar.requires_grad_(bool(train_generative))
     t0 = time.perf_counter()
     if steps > 0:
         r1 = training.train_loop(model, dvae_loss, poses, steps=steps, batch_size=batch_size, seed=seed, lr=lr,
@@ -205,7 +238,7 @@ def train_motion_dvae(
     phase1_wall = time.perf_counter() - t0
 
     # phase 2: denoising networks on noisy copies; prior, decoder and clean encoder frozen
-    if not (init_weights is not None and init_denoise):
+    if not (init_weights is not None and init_denoise) and denoise_steps > 0:
         with torch.no_grad():
             model.denoise_encoder.load_state_dict(model.encoder.state_dict())
     for p in model.parameters():
@@ -230,8 +263,13 @@ def train_motion_dvae(
         return m.denoise_loss(states, obs, beta, generator=g)
 
     t0 = time.perf_counter()
-    r2 = training.train_loop(model, denoise_loss, poses, steps=denoise_steps, batch_size=batch_size, seed=seed + 1,
-                             lr=denoise_lr, log_every=log_every, val_data=val_poses, val_batch=256)
+    if denoise_steps > 0:
+        r2 = training.train_loop(model, denoise_loss, poses, steps=denoise_steps, batch_size=batch_size, seed=seed + 1,
+                                 lr=denoise_lr, log_every=log_every, val_data=val_poses, val_batch=256)
+    else:  # the denoising networks as loaded
+        model.eval()
+        r2 = training.TrainResult(steps=0, wall_s=0.0, final_train=None,
+                                  final_val=training.evaluate(model, denoise_loss, val_poses, 256) if val_poses is not None else None)
     phase2_wall = time.perf_counter() - t0
     for p in model.parameters():
         p.requires_grad_(False)
@@ -250,10 +288,13 @@ def train_motion_dvae(
                     "note": "each training batch is cut to its first L frames (L drawn per step); validation on whole windows"},
         "state": "138-D: trans, root aa, 21 body aa, finite-difference velocities x30; canonical first frame (HuMoR)",
         "phase_dvae": {
-            "loss": f"Gaussian NLL of the standardised state (learned per-dim variance) + beta*KL(q||p) + {POINT_WEIGHT}*sum squared point errors (m^2; "
+            "loss": f"Gaussian NLL of the standardised state (learned per-dim variance) + beta*KL(q||p) + {pw}*sum squared point errors (m^2; "
                     "22 FK joints + 44 virtual markers), per frame; beta 0->1 over the first "
                     f"{kl_anneal_fraction:.0%} of steps",
             "optimiser": {"name": "Adam (shared train_loop)", "lr": lr, "schedule": "cosine to 0.1*lr", "batch_size": batch_size},
+            "trained": (["gen_rnn", "prior_mean", "prior_logvar", "decoder", "dec_logvar"] if train_generative else []) + ["encoder"]
+                       if steps > 0 else [],
+            "point_weight": pw, "validation_point_weight": POINT_WEIGHT,
             "steps": steps, "train_wall_s": round(phase1_wall, 2), "s_per_step": round(r1.wall_s / max(steps, 1), 4),
             "final_train": r1.final_train, "final_val": r1.final_val, "history": r1.history,
         },
@@ -261,9 +302,9 @@ def train_motion_dvae(
             "loss": "Student-t (Inverse-Gamma per-frame variance) data term on body points + beta*KL_z + KL_noise, per frame",
             "noise": f"axis-angle sigma ~ U{DENOISE_SIGMA_RANGE} rad on all 22 joints; noise prior InvGamma(a0={NOISE_PRIOR_SHAPE}, "
                      f"mean precision 1/{NOISE_PRIOR_SCALE_M}^2)",
-            "trained": ["denoise_encoder (initialised from encoder)", "init_state", "noise"],
+            "trained": ["denoise_encoder (initialised from encoder)", "init_state", "noise"] if denoise_steps > 0 else [],
             "optimiser": {"name": "Adam (shared train_loop)", "lr": denoise_lr, "schedule": "cosine to 0.1*lr", "batch_size": batch_size},
-            "steps": denoise_steps, "train_wall_s": round(phase2_wall, 2), "s_per_step": round(r2.wall_s / denoise_steps, 4),
+            "steps": denoise_steps, "train_wall_s": round(phase2_wall, 2), "s_per_step": round(r2.wall_s / max(denoise_steps, 1), 4),
             "final_train": r2.final_train, "final_val": r2.final_val, "history": r2.history,
         },
         "paper_settings_not_used": "Adamax lr 1e-4 (HuMoR), batch 64, 200 epochs, KL annealing over 50 epochs",
@@ -284,9 +325,28 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--denoise-steps", type=int, default=720)
     ap.add_argument("--init", default=None, help="warm start phase 1 from this motion_dvae.pt (DVAE and statistics)")
     ap.add_argument("--lr", type=float, default=1e-3, help="phase-1 learning rate")
+    ap.add_argument("--denoise-lr", type=float, default=1e-3, help="phase-2 learning rate")
+    ap.add_argument("--encoder-only", action="store_true",
+                    help="phase 1 trains the clean encoder only (the generative model of --init stays as it is)")
+    ap.add_argument("--encoder-point-weight", type=float, default=None,
+                    help="with --encoder-only: the point-error weight of the clean encoder's loss (default: the DVAE's)")
+    ap.add_argument("--init-denoise", action="store_true", help="phase 2 continues the denoising networks of --init")
+    ap.add_argument("--denoise-from", default=None, help="phase 2 starts from the denoising networks of this motion_dvae.pt")
+    ap.add_argument("--checkpoint-dir", default=None,
+                    help="save the resumable training state here every --checkpoint-every steps (--resume continues it)")
+    ap.add_argument("--checkpoint-every", type=int, default=200)
+    ap.add_argument("--resume", action="store_true")
     args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
-    _, rec = train_motion_dvae(args.out, steps=args.steps, denoise_steps=args.denoise_steps, seed=args.seed,
-                               init_weights=args.init, lr=args.lr)
+    import contextlib
+
+    ctx = (training.training_session(args.checkpoint_dir, resume=args.resume, checkpoint_every=args.checkpoint_every,
+                                     val_every=500) if args.checkpoint_dir else contextlib.nullcontext())
+    with ctx:
+        _, rec = train_motion_dvae(args.out, steps=args.steps, denoise_steps=args.denoise_steps, seed=args.seed,
+                                   init_weights=args.init, lr=args.lr, denoise_lr=args.denoise_lr,
+                                   init_denoise=args.init_denoise, init_denoise_weights=args.denoise_from,
+                                   train_generative=not args.encoder_only,
+                                   encoder_point_weight=args.encoder_point_weight)
     print({k: rec[k] for k in ("train_wall_s", "checkpoint_bytes")})
 
 
