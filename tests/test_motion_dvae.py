@@ -359,7 +359,7 @@ def test_encoder_only_training_keeps_the_generative_model(tmp_path):
     path = training.save_checkpoint(tmp_path / "motion_dvae.pt", base.state_dict(), base.config)
     model, record = train_motion_dvae(None, steps=3, denoise_steps=0, config=TINY, batch_size=8, windows=windows,
                                       rest_joints=REST, log_every=10, init_weights=path, init_denoise=True,
-                                      train_generative=False, lr=1e-2)
+                                      train_generative=False, lr=1e-2, encoder_point_weight=400.0)
     before, after = base.state_dict(), model.state_dict()
     for k in before:
         part = k.split(".")[0]
@@ -367,6 +367,10 @@ def test_encoder_only_training_keeps_the_generative_model(tmp_path):
             assert torch.equal(before[k], after[k]), k
     assert any(not torch.equal(before[k], after[k]) for k in before if k.startswith("encoder."))
     assert record["phase_dvae"]["trained"] == ["encoder"] and record["phase_denoise"]["trained"] == []
+    assert record["phase_dvae"]["point_weight"] == 400.0 and record["phase_dvae"]["validation_point_weight"] == 100.0
+    with pytest.raises(ValueError, match="encoder-only"):
+        train_motion_dvae(None, steps=1, denoise_steps=0, config=TINY, windows=windows, rest_joints=REST,
+                          encoder_point_weight=400.0)
     with pytest.raises(ValueError, match="needs init_weights"):
         train_motion_dvae(None, steps=1, denoise_steps=0, config=TINY, windows=windows, rest_joints=REST,
                           train_generative=False)
