@@ -198,6 +198,27 @@ class Encoder(nn.Module):
         out, _ = self.bwd_rnn(torch.flip(xn, [1]))
         return torch.flip(out, [1])
 
+    def start(self, xn: torch.Tensor, x0n: torch.Tensor, b=None):
+        """The forward cell's first state (from [0, x^_0]) and the heads' per-frame terms for inputs xn.
+
+        The heads' first Linear acts on [f_{t-1}, b_t]: its b-part is computed for all t at once
+        (the same maths as post_mean([f, b]), fewer sequential operations)."""
+        if b is None:
+            b = self.backward_features(xn)
+        state = self.fwd_cell(torch.cat([xn.new_zeros(xn.shape[0], self.z_dim), x0n], -1))
+        Hf = state[0].shape[-1]
+        lin_m, lin_v = self.post_mean.net[0], self.post_logvar.net[0]
+        heads = (F.linear(b[:, 1:], lin_m.weight[:, Hf:], lin_m.bias), F.linear(b[:, 1:], lin_v.weight[:, Hf:], lin_v.bias),
+                 lin_m.weight[:, :Hf], lin_v.weight[:, :Hf])
+        return state, heads
+
+    def posterior(self, f: torch.Tensor, t: int, heads) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean, log-variance) of q(z_t) from the forward state f_{t-1} and :meth:`start`'s heads."""
+        pre_m, pre_v, w_m, w_v = heads
+        mu = self.post_mean.net[1:](F.linear(f, w_m) + pre_m[:, t - 1])
+        lv = self.post_logvar.net[1:](F.linear(f, w_v) + pre_v[:, t - 1]).clamp(*LOGVAR_RANGE)
+        return mu, lv
+
     def forward(self, xn: torch.Tensor, x0n: torch.Tensor, sample: bool, generator=None, b=None):
         """Posterior over z_{1:T-1} for standardised states xn (B, T, S) and x^_0 (B, S).
 
@@ -205,23 +226,10 @@ class Encoder(nn.Module):
         else feed back the posterior mean. Returns (z, q_mean, q_logvar), each (B, T-1, Z).
         """
         B, T, _ = xn.shape
-        if b is None:
-            b = self.backward_features(xn)
-        z_prev = xn.new_zeros(B, self.z_dim)
-        state = self.fwd_cell(torch.cat([z_prev, x0n], -1))
-        # The heads' first Linear acts on [f_{t-1}, b_t]: its b-part is computed for all t at once
-        # (the same maths as post_mean([f, b]), fewer sequential operations).
-        Hf = state[0].shape[-1]
-        lin_m, lin_v = self.post_mean.net[0], self.post_logvar.net[0]
-        pre_m = F.linear(b[:, 1:], lin_m.weight[:, Hf:], lin_m.bias)
-        pre_v = F.linear(b[:, 1:], lin_v.weight[:, Hf:], lin_v.bias)
-        rest_m, rest_v = self.post_mean.net[1:], self.post_logvar.net[1:]
-        w_m, w_v = lin_m.weight[:, :Hf], lin_v.weight[:, :Hf]
+        state, heads = self.start(xn, x0n, b)
         zs, means, logvars = [], [], []
         for t in range(1, T):
-            f = state[0]
-            mu = rest_m(F.linear(f, w_m) + pre_m[:, t - 1])
-            lv = rest_v(F.linear(f, w_v) + pre_v[:, t - 1]).clamp(*LOGVAR_RANGE)
+            mu, lv = self.posterior(state[0], t, heads)
             if sample:
                 z = mu + torch.exp(0.5 * lv) * _randn(mu, generator)
             else:
@@ -388,15 +396,7 @@ class MotionDVAE(nn.Module):
             return z, qm, qlv, h, self.decode_normalised(x0n, z, h)
         B, T, _ = xn.shape
         Z = self.z_dim
-        if b is None:
-            b = enc.backward_features(xn)
-        state = enc.fwd_cell(torch.cat([x0n.new_zeros(B, Z), x0n], -1))
-        Hf = state[0].shape[-1]
-        lin_m, lin_v = enc.post_mean.net[0], enc.post_logvar.net[0]
-        pre_m = F.linear(b[:, 1:], lin_m.weight[:, Hf:], lin_m.bias)
-        pre_v = F.linear(b[:, 1:], lin_v.weight[:, Hf:], lin_v.bias)
-        rest_m, rest_v = enc.post_mean.net[1:], enc.post_logvar.net[1:]
-        w_m, w_v = lin_m.weight[:, :Hf], lin_v.weight[:, :Hf]
+        state, heads = enc.start(xn, x0n, b)
         g = self.gen_rnn
         gw_z, gw_x = g.weight_ih_l0[:, :Z], g.weight_ih_l0[:, Z:]
         g_const = F.linear(x0n, gw_x, g.bias_ih_l0)  # the x^_0 part of every generative input
@@ -408,9 +408,7 @@ class MotionDVAE(nn.Module):
         x = x0n
         zs, means, logvars, hs, xs = [], [], [], [hg], [x0n]
         for t in range(1, T):
-            f = state[0]
-            mu = rest_m(F.linear(f, w_m) + pre_m[:, t - 1])
-            lv = rest_v(F.linear(f, w_v) + pre_v[:, t - 1]).clamp(*LOGVAR_RANGE)
+            mu, lv = enc.posterior(state[0], t, heads)
             z = mu + torch.exp(0.5 * lv) * _randn(mu, generator) if sample else mu
             hg, cg = _lstm_step(F.linear(z, gw_z) + g_const, hg, cg, g.weight_hh_l0, g.bias_hh_l0)
             x = x + dec_rest(F.linear(hg, dw_h) + F.linear(z, dw_z, dec_lin.bias))
