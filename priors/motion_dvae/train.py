@@ -6,6 +6,7 @@ retrains the embedded weights.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from pathlib import Path
@@ -124,6 +125,11 @@ def train_motion_dvae(
         if init_weights is None:
             raise ValueError("init_denoise_weights needs init_weights (the DVAE the denoising networks belong to)")
         init_denoise = True
+    if not train_generative and init_weights is None:
+        raise ValueError("train_generative=False (encoder only) needs init_weights (a trained generative model)")
+    if encoder_point_weight is not None and train_generative:
+        raise ValueError("encoder_point_weight applies to encoder-only training (train_generative=False)")
+    pw = float(POINT_WEIGHT if encoder_point_weight is None else encoder_point_weight)  # phase 1's point weight
     cfg = dict(EMBEDDED_CONFIG, **(config or {}))
     data_info: dict = {}
     if windows is None:
@@ -215,11 +221,6 @@ def train_motion_dvae(
 
     for p in model.parameters():
         p.requires_grad_(False)
-    if not train_generative and init_weights is None:
-        raise ValueError("train_generative=False (encoder only) needs init_weights (a trained generative model)")
-    if encoder_point_weight is not None and train_generative:
-        raise ValueError("encoder_point_weight applies to encoder-only training (train_generative=False)")
-    pw = float(POINT_WEIGHT if encoder_point_weight is None else encoder_point_weight)
     gen_modules = [model.gen_rnn, model.prior_mean, model.prior_logvar, model.decoder] if train_generative else []
     for mod in gen_modules + [model.encoder]:
         for p in mod.parameters():
@@ -337,8 +338,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--checkpoint-every", type=int, default=200)
     ap.add_argument("--resume", action="store_true")
     args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
-    import contextlib
-
+    if args.resume and not (args.checkpoint_dir and Path(args.checkpoint_dir).exists()):
+        raise SystemExit(f"--resume: no training state in --checkpoint-dir {args.checkpoint_dir!r}; start the training "
+                         f"with --checkpoint-dir DIR (and without --resume) first")
     ctx = (training.training_session(args.checkpoint_dir, resume=args.resume, checkpoint_every=args.checkpoint_every,
                                      val_every=500) if args.checkpoint_dir else contextlib.nullcontext())
     with ctx:
