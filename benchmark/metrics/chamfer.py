@@ -23,7 +23,9 @@ point sets (:func:`chamfer_loss`):
 Both KD-tree backends are exact in float64: they return the same nearest neighbours (up to exact
 ties), so the loss, its gradient and every metric are unchanged by the choice.
 :class:`benchmark.metrics.static_chamfer.StaticChamfer` is :func:`chamfer_loss` against a point set that does not change between
-calls (the observed points of a fit): their trees are built once, not at every optimiser step.
+calls (the observed points of a fit): their search structures are built once, not at every
+optimiser step, and its neighbours come from compiled grids (:mod:`benchmark.metrics.grid_nn`),
+exact as the trees are.
 
 All backends return the same distances; where a query point has two equidistant nearest
 neighbours they may pick different ones (same value, different gradient). In float32 the tiled

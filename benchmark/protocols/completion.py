@@ -58,7 +58,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     (a profile size, for CPU speed); None uses every vertex. Evaluation always uses every vertex.
 
     The data term is the exact Chamfer loss (:func:`benchmark.metrics.chamfer.chamfer_loss`, exact
-    nearest neighbours); the KD-trees of the observed points, which never move, are built once
+    nearest neighbours); the search grids of the observed points, which never move, are built once
     per fit (:class:`~benchmark.metrics.chamfer.StaticChamfer`) and shared by the heading search
     and every step.
 

@@ -498,7 +498,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
     weights = AdaptiveWeights(terms_used, B, alpha=float(ad.get("alpha", 1.5)), smoothing=float(ad.get("smoothing", 0.5)),
                               every=int(ad.get("every", 10)))
     latents = list(state.latents.values())
-    # the observed points never move: their KD-trees are built once (same values as chamfer_loss)
+    # the observed points never move: their search structures are built once (same values as chamfer_loss)
     dense = None if pts is None else StaticChamfer(pts.flatten(0, 1))
 
     trace = []  # (B,) the unweighted sum of the active data terms at every step (fit diagnostics)
