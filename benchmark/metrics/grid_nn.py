@@ -152,6 +152,14 @@ def _build_candidates(geom, lengths, cells_per_point):
     return cgeom, ccell_off, cstart, ccount
 
 
+def _sqdist(pts, s, qx, qy, qz):
+    """Squared distance from point ``s`` of ``pts`` to (qx, qy, qz), as the KD-trees compute it."""
+    dx = pts[s, 0] - qx
+    dy = pts[s, 1] - qy
+    dz = pts[s, 2] - qz
+    return dx * dx + dy * dy + dz * dz
+
+
 def _cell_range(lo, hi, o, h, d):
     """Indices of the cells (of ``d`` along an axis from origin ``o``, width ``h``) that meet [lo, hi]."""
     a = min(max(int(math.floor((lo - o) / h)), 0), d - 1)
@@ -203,10 +211,7 @@ def _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, pts, r0, max_cel
                         continue
                     c = c0 + (j0 * d1 + j1) * d2 + j2
                     for s in range(starts[c], starts[c + 1]):
-                        dx = pts[s, 0] - qx
-                        dy = pts[s, 1] - qy
-                        dz = pts[s, 2] - qz
-                        d = dx * dx + dy * dy + dz * dz
+                        d = _sqdist(pts, s, qx, qy, qz)
                         if d < best:
                             best = d
                             bi = s
@@ -338,10 +343,7 @@ def _query_cached(queries, qlengths, order, max_cells, geom, cell_off, starts, i
             bs = -1
             for t in range(cstart[c], cstart[c] + ccount[c]):
                 s = pool[t]
-                dx = sorted_pts[s, 0] - qx
-                dy = sorted_pts[s, 1] - qy
-                dz = sorted_pts[s, 2] - qz
-                d = dx * dx + dy * dy + dz * dz
+                d = _sqdist(sorted_pts, s, qx, qy, qz)
                 if d < best:
                     best = d
                     bs = s
@@ -353,6 +355,7 @@ if HAVE_NUMBA:
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")  # no fastmath: the same doubles as the trees
     _inline = numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
     _build = _jit(_build)
+    _sqdist = _inline(_sqdist)
     _cell_range = _inline(_cell_range)
     _nearest = _inline(_nearest)
     _query = _jit(_query)
