@@ -5,8 +5,9 @@ absolute targets checked against another machine's numbers), prints one markdown
 it with a JSON of every figure to ``--out`` (``perf.md`` and ``perf.json``):
 
 - the project's Chamfer loss (forward + backward, the fixed observed points' search grids built
-  once and the vertices moved between calls, as in a fit) and metric against scipy ``cKDTree`` (``workers=1``) and pykdtree used directly (both
-  trees built per call), at 100 / 1,000 / 10,000 points against 3,000 and 13,718 vertices;
+  once and the vertices moved between calls, as in a fit) and metric against scipy ``cKDTree``
+  (``workers=1``) and pykdtree used directly (both trees built per call), at 100 / 1,000 / 10,000
+  points against 3,000 and 13,718 vertices;
 - the evaluation's scan -> surface distance (and the exact point -> surface distance) against its
   reference implementation, ``trimesh.proximity`` and libigl where installed;
 - the whole per-frame evaluation (every table1 metric) against its reference implementation;

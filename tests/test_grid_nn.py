@@ -79,6 +79,23 @@ def test_query_order_does_not_change_answers():
     assert np.array_equal(grids.nearest(queries, qlengths), grids.nearest(queries, qlengths, order))
 
 
+def test_hints_do_not_change_answers():
+    """Any hint (a point to start from: the right one, a random one, or none) gives the exact answer."""
+    rng = np.random.default_rng(2)
+    points = _cloud(rng, 2, 600, "shell", 1.0)
+    lengths, qlengths = np.array([600, 350]), np.array([900, 700])
+    queries = _cloud(rng, 2, 900, "shell", 1.0) * rng.choice([0.5, 1.0, 3.0], size=(2, 900, 1))
+    grids = grid_nn.PointGrids(points, lengths)
+    plain = grids.nearest(queries, qlengths)
+    _check(points, lengths, queries, qlengths, plain)
+    random_hints = np.stack([rng.integers(0, n, size=900) for n in lengths])
+    random_hints[0, ::7] = -1
+    assert np.array_equal(grids.nearest(queries, qlengths, hints=random_hints), plain)
+    assert np.array_equal(grids.nearest(queries, qlengths, hints=plain), plain)
+    with pytest.raises(ValueError, match="hints must be"):
+        grids.nearest(queries, qlengths, hints=np.full((2, 900), 400))
+
+
 def test_errors():
     points = np.zeros((2, 5, 3))
     with pytest.raises(ValueError, match=r"\(N, M, 3\)"):

@@ -5,13 +5,14 @@ observed point of each mesh vertex, and the nearest mesh vertex of each observed
 are a few hundred to ten thousand per frame, on one body's surface; a KD-tree answers each query
 in 140-300 ns on this data, and rebuilding the vertices' tree at every step costs as much again.
 A uniform grid over a frame's points, built by one counting sort (O(n)), answers a query near the
-surface by scanning the 27 cells around it, in compiled code, for a whole batch of frames per call.
+surface by scanning the few cells that meet a small cube about it, in compiled code, for a whole
+batch of frames per call.
 
 A point set that stays fixed while it is queried many times (a fit's observed points, up to
 ``CANDIDATE_MAX_POINTS`` per frame) can also carry a candidate grid (``candidates=True``): finer
 cells, each listing, once it is first queried, every point that is the nearest of some position
 in the cell (see :func:`_cell_candidates`). A query then reads one cell's list, 15-25 points on
-body-like data, instead of scanning 27 cells: 2-3x faster once the cells it meets are filled.
+body-like data, instead of searching: 2-3x faster once the cells it meets are filled.
 
 Exactness: a query scans the cells that meet a cube about it (its half-side R starts from the
 previous query's distance: queries come in a spatially coherent order), skipping a cell whose box
@@ -42,7 +43,7 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
     HAVE_NUMBA = False
 
-POINTS_PER_CELL = 2.0
+POINTS_PER_CELL = 2.0  # mean points per cell of a grid's bounding box: sets the cell size (speed only)
 MAX_CELLS_PER_POINT = 8  # the grid never has more cells than this many per point (plus 8)
 CANDIDATE_CELLS_PER_POINT = 8  # a candidate grid never has more cells than this many per point (plus 64)
 MAX_CELLS = 343  # a query whose search would span more cells than this with no point found goes to a KD-tree
@@ -62,7 +63,6 @@ def _build(points, lengths, cells_per_point, points_per_cell):
     n_batch = points.shape[0]
     geom = np.empty((n_batch, 7))
     cell_off = np.zeros(n_batch + 1, dtype=np.int64)
-    dims = np.empty((n_batch, 3), dtype=np.int64)
     for n in range(n_batch):
         m = lengths[n]
         lo0 = lo1 = lo2 = math.inf
@@ -88,7 +88,6 @@ def _build(points, lengths, cells_per_point, points_per_cell):
             h *= 1.25
         geom[n, 0], geom[n, 1], geom[n, 2], geom[n, 3] = lo0, lo1, lo2, h
         geom[n, 4], geom[n, 5], geom[n, 6] = d0, d1, d2
-        dims[n, 0], dims[n, 1], dims[n, 2] = d0, d1, d2
         cell_off[n + 1] = cell_off[n] + d0 * d1 * d2 + 1
     total = 0
     for n in range(n_batch):
@@ -101,7 +100,7 @@ def _build(points, lengths, cells_per_point, points_per_cell):
     for n in range(n_batch):
         m = lengths[n]
         ox, oy, oz, h = geom[n, 0], geom[n, 1], geom[n, 2], geom[n, 3]
-        d0, d1, d2 = dims[n, 0], dims[n, 1], dims[n, 2]
+        d0, d1, d2 = int(geom[n, 4]), int(geom[n, 5]), int(geom[n, 6])
         c0 = cell_off[n]
         for i in range(m):
             i0 = min(max(int((points[n, i, 0] - ox) / h), 0), d0 - 1)
@@ -281,12 +280,9 @@ def _cell_candidates(n, c, j0, j1, j2, cgeom, geom, cell_off, starts, sorted_pts
     fz = max(abs(pz - lz), abs(pz - uz))
     u = math.sqrt(fx * fx + fy * fy + fz * fz) * (1.0 + 1e-9) + 1e-12
     u2 = u * u
-    a0 = min(max(int(math.floor((lx - u - ox) / h)), 0), d0 - 1)
-    b0 = min(max(int(math.floor((ux + u - ox) / h)), 0), d0 - 1)
-    a1 = min(max(int(math.floor((ly - u - oy) / h)), 0), d1 - 1)
-    b1 = min(max(int(math.floor((uy + u - oy) / h)), 0), d1 - 1)
-    a2 = min(max(int(math.floor((lz - u - oz) / h)), 0), d2 - 1)
-    b2 = min(max(int(math.floor((uz + u - oz) / h)), 0), d2 - 1)
+    a0, b0 = _cell_range(lx - u, ux + u, ox, h, d0)
+    a1, b1 = _cell_range(ly - u, uy + u, oy, h, d1)
+    a2, b2 = _cell_range(lz - u, uz + u, oz, h, d2)
     start = used
     for k0 in range(a0, b0 + 1):
         for k1 in range(a1, b1 + 1):
@@ -312,7 +308,7 @@ def _cell_candidates(n, c, j0, j1, j2, cgeom, geom, cell_off, starts, sorted_pts
 def _query_cached(queries, qlengths, order, max_cells, geom, cell_off, starts, index, sorted_pts,
                   cgeom, ccell_off, cstart, ccount, pool, used, out):
     """:func:`_query` through the candidate grids (cells filled on first use); a query outside its
-    element's candidate grid takes the ring search. Returns (pool, used, number unresolved)."""
+    element's candidate grid takes the cube search. Returns (pool, used, number unresolved)."""
     far = 0
     for n in range(queries.shape[0]):
         ox, oy, oz, h = geom[n, 0], geom[n, 1], geom[n, 2], geom[n, 3]
@@ -394,7 +390,8 @@ class PointGrids:
         values there). ``order`` (N, Mq) int64: per element, the valid positions in the order to
         query them (any order gives the same answers; a spatially coherent one is faster).
         ``hints`` (N, Mq) int64: per query, a point index to start from (-1: none), e.g. the
-        previous step's answers; any hints give the same answers (faster when they are near)."""
+        previous step's answers; any hints give the same answers (faster when they are near). A
+        grid with candidate lists needs none and ignores them."""
         queries = np.ascontiguousarray(queries, dtype=np.float64)
         qlengths = np.ascontiguousarray(qlengths, dtype=np.int64)
         if queries.ndim != 3 or queries.shape[0] != self.lengths.shape[0] or queries.shape[2] != 3:
@@ -409,14 +406,13 @@ class PointGrids:
                              f"[0, {queries.shape[1]}); got shape {order.shape}.")
         if out is None:
             out = np.full(queries.shape[:2], -1, dtype=np.int64)
-        if hints is None:
-            hints = np.full(queries.shape[:2], -1, dtype=np.int64)
-        hints = np.ascontiguousarray(hints, dtype=np.int64)
-        if hints.shape != queries.shape[:2] or (hints.size and int(hints.max()) >= int(self.lengths.min())
-                                                and bool((hints >= self.lengths[:, None]).any())):
-            raise ValueError(f"PointGrids.nearest: hints must be ({queries.shape[0]}, {queries.shape[1]}) indices below "
-                             f"each element's length (or -1); got shape {hints.shape}.")
         if self._cand is None:
+            if hints is None:
+                hints = np.full(queries.shape[:2], -1, dtype=np.int64)
+            hints = np.ascontiguousarray(hints, dtype=np.int64)
+            if hints.shape != queries.shape[:2] or bool((hints >= self.lengths[:, None]).any()):
+                raise ValueError(f"PointGrids.nearest: hints must be ({queries.shape[0]}, {queries.shape[1]}) indices "
+                                 f"below each element's length (or -1); got shape {hints.shape}.")
             far = _query(queries, qlengths, order, MAX_CELLS, hints, self.points, *self._grids, out)
         else:
             self._pool, self._used, far = _query_cached(queries, qlengths, order, MAX_CELLS, *self._grids, *self._cand,
