@@ -26,6 +26,7 @@ from priors.motion_dvae.model import (
     state_to_motion,
     uncanonicalise,
     unwrap_rotvec,
+    windows_to_state,
 )
 from priors.motion_dvae.train import train_motion_dvae
 
@@ -374,3 +375,73 @@ def test_encoder_only_training_keeps_the_generative_model(tmp_path):
     with pytest.raises(ValueError, match="needs init_weights"):
         train_motion_dvae(None, steps=1, denoise_steps=0, config=TINY, windows=windows, rest_joints=REST,
                           train_generative=False)
+
+
+# -- the residual input of the clean encoder --------------------------------------------------
+def test_residual_encoder_starts_as_the_encoder_without_it(tmp_path):
+    torch.manual_seed(0)
+    fb = MotionDVAE(**dict(TINY, feedback=True)).eval()
+    with torch.no_grad():
+        fb.decoder.net[-1].weight.normal_(0, 0.1)  # a decoder that moves off x_0
+    res = MotionDVAE(**dict(TINY, feedback=True, encoder_residual=True)).eval()
+    missing = res.load_state_dict(fb.state_dict(), strict=False).missing_keys
+    assert sorted(missing) == ["encoder.res_logvar.weight", "encoder.res_mean.weight"]
+    xn = torch.randn(3, 7, 138)
+    with torch.no_grad():
+        assert torch.equal(res.encode_means(xn), fb.encode_means(xn))  # zero residual weights: the same encoder
+        res.encoder.res_mean.weight.normal_(0, 0.1)
+        z = res.encode_means(xn)
+        # the heads read target minus decoded pose: at t = 1 that is x_1 - x_0 (the decoded frame 0 is x_0)
+        gap = (xn[:, 1, :69] - xn[:, 0, :69]).clamp(-3, 3)
+        assert not torch.allclose(z[:, 0], fb.encode_means(xn)[:, 0])
+        state, heads = res.encoder.start(xn, xn[:, 0])
+        assert torch.allclose(z[:, 0], res.encoder.posterior(state[0], 1, heads, gap)[0], atol=1e-6)
+    # the denoising encoder has no residual input; the wiring travels with the checkpoint
+    assert not hasattr(res.denoise_encoder, "res_mean")
+    path = training.save_checkpoint(tmp_path / "motion_dvae.pt", res.state_dict(), res.config)
+    assert MotionDVAEPrior(size="embedded", weights=str(path)).net.encoder_residual is True
+    path = training.save_checkpoint(tmp_path / "old.pt", fb.state_dict(), fb.config)
+    assert MotionDVAEPrior(size="embedded", weights=str(path)).net.encoder_residual is False
+    with pytest.raises(ValueError, match="needs feedback=True"):
+        MotionDVAE(**dict(TINY, feedback=False, encoder_residual=True))
+    with pytest.raises(ValueError, match="needs the decoded state"):
+        res.encoder.posterior(state[0], 1, heads)
+
+
+def test_root_markers_weigh_the_root_heading():
+    torch.manual_seed(1)
+    m = MotionDVAE(**dict(TINY, feedback=True)).eval()
+    states = windows_to_state(smooth_windows(2, 6, seed=4))
+    pts = body_points(*state_to_motion(states), REST)
+    with torch.no_grad():
+        m.decoder.net[-1].weight.normal_(0, 0.1)
+        torch.manual_seed(2)
+        plain = m.dvae_loss(states, pts, beta=1.0, point_weight=10.0)
+        torch.manual_seed(2)
+        marked = m.dvae_loss(states, pts, beta=1.0, point_weight=10.0, root_marker_m=1.5)
+        # the same draw: the difference is the root markers' squared errors, weighted
+        torch.manual_seed(2)
+        z, _, _, _, rec_n = m.infer(m.encoder, m.normalise(states), m.normalise(states)[:, 0], sample=True)
+        rot, _ = state_to_motion(m.unnormalise(rec_n[:, 1:]))
+        gt, _ = state_to_motion(states[:, 1:])
+        extra = ((rot[..., 0, :, 0] - gt[..., 0, :, 0]).square().sum(-1) + (rot[..., 0, :, 2] - gt[..., 0, :, 2]).square().sum(-1))
+    assert torch.allclose(marked["loss"] - plain["loss"], 10.0 * 1.5 ** 2 * extra.mean(), rtol=1e-4, atol=1e-6)
+    assert marked["point_sq_m2"] > plain["point_sq_m2"]
+
+
+def test_residual_training_from_a_checkpoint_without_it(tmp_path):
+    windows = smooth_windows(16, 8, seed=3)
+    base, _ = train_motion_dvae(None, steps=1, denoise_steps=1, config=TINY, batch_size=8, windows=windows,
+                                rest_joints=REST, log_every=10)
+    assert base.feedback and not base.encoder_residual
+    path = training.save_checkpoint(tmp_path / "motion_dvae.pt", base.state_dict(), base.config)
+    model, record = train_motion_dvae(None, steps=2, denoise_steps=0, config=dict(TINY, encoder_residual=True),
+                                      batch_size=8, windows=windows, rest_joints=REST, log_every=10, init_weights=path,
+                                      init_denoise=True, train_generative=False, lr=1e-2, encoder_point_weight=400.0,
+                                      encoder_root_marker_m=1.5)
+    assert model.encoder_residual and record["config"]["encoder_residual"] is True
+    assert record["phase_dvae"]["root_marker_m"] == 1.5
+    assert model.encoder.res_mean.weight.abs().sum() > 0  # trained from zero
+    with pytest.raises(ValueError, match="encoder-only"):
+        train_motion_dvae(None, steps=1, denoise_steps=0, config=TINY, windows=windows, rest_joints=REST,
+                          encoder_root_marker_m=1.0)

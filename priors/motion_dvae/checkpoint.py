@@ -34,7 +34,8 @@ def read_project_checkpoint(path: str | Path) -> tuple[dict, dict]:
         raise ValueError(f"{path}: field 'config' lacks {sorted(missing)}; retrain with `{TRAIN_COMMAND}`")
     return ckpt["state_dict"], {"z_dim": int(cfg["z_dim"]), "hidden": int(cfg["hidden"]),
                                 "mlp_hidden": int(cfg["mlp_hidden"]), "fps": float(cfg.get("fps", FPS)),
-                                "feedback": bool(cfg.get("feedback", False))}
+                                "feedback": bool(cfg.get("feedback", False)),
+                                "encoder_residual": bool(cfg.get("encoder_residual", False))}
 
 
 def load_state_strict(model: MotionDVAE, state_dict: dict, source: str) -> None:

@@ -32,6 +32,7 @@ NOISE_PRIOR_SCALE_M = 0.1  # prior mean precision a0 / b0 = 1 / NOISE_PRIOR_SCAL
 LOGVAR_RANGE = (-12.0, 8.0)
 DEC_LOGVAR_RANGE = (-7.0, 2.0)  # decoder variance bounds (standardised units)
 DENOISE_INPUT_CLIP = 3.0  # standard deviations, joint rotations of the denoising networks' input (denoise_input)
+RESIDUAL_CLIP = 3.0  # standard deviations, the clean encoder's residual input (Encoder, residual=True)
 
 
 # -- geometry: canonical frame, state vectors, body points -------------------------------------
@@ -183,15 +184,27 @@ def _zero_last(mlp: MLP) -> None:
 
 
 class Encoder(nn.Module):
-    """q(z_t | x_0, z_{1:t-1}, x_{t:T}): anti-causal LSTM over states + forward recurrence over z."""
+    """q(z_t | x_0, z_{1:t-1}, x_{t:T}): anti-causal LSTM over states + forward recurrence over z.
 
-    def __init__(self, z_dim: int, hidden: int, mlp_hidden: int):
+    residual=True (feedback wiring only, :meth:`MotionDVAE.infer`): the heads also read the gap
+    between the target pose x^_t and the decoded pose x^dec_{t-1}, each standardised dimension
+    clipped to +-RESIDUAL_CLIP, through two bias-free Linear maps that start at zero (so the wiring
+    starts as the encoder without it) [inferred]."""
+
+    def __init__(self, z_dim: int, hidden: int, mlp_hidden: int, residual: bool = False):
         super().__init__()
         self.z_dim = z_dim
         self.bwd_rnn = nn.LSTM(STATE_DIM, hidden, batch_first=True)
         self.fwd_cell = nn.LSTMCell(z_dim + STATE_DIM, hidden)
         self.post_mean = MLP([2 * hidden, mlp_hidden, mlp_hidden, z_dim])
         self.post_logvar = MLP([2 * hidden, mlp_hidden, mlp_hidden, z_dim])
+        self.residual = bool(residual)
+        if self.residual:
+            self.res_mean = nn.Linear(POSE_DIM, mlp_hidden, bias=False)
+            self.res_logvar = nn.Linear(POSE_DIM, mlp_hidden, bias=False)
+            with torch.no_grad():
+                self.res_mean.weight.zero_()
+                self.res_logvar.weight.zero_()
 
     def backward_features(self, xn: torch.Tensor) -> torch.Tensor:
         """(B, T, S) standardised states -> (B, T, H) anti-causal features b_t (summary of x_{t:T})."""
@@ -212,11 +225,19 @@ class Encoder(nn.Module):
                  lin_m.weight[:, :Hf], lin_v.weight[:, :Hf])
         return state, heads
 
-    def posterior(self, f: torch.Tensor, t: int, heads) -> tuple[torch.Tensor, torch.Tensor]:
-        """(mean, log-variance) of q(z_t) from the forward state f_{t-1} and :meth:`start`'s heads."""
+    def posterior(self, f: torch.Tensor, t: int, heads, gap: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean, log-variance) of q(z_t) from the forward state f_{t-1} and :meth:`start`'s heads;
+        ``gap`` (B, POSE_DIM): target pose at t minus decoded pose at t-1 (standardised), read only
+        by a residual encoder, which needs it."""
         pre_m, pre_v, w_m, w_v = heads
-        mu = self.post_mean.net[1:](F.linear(f, w_m) + pre_m[:, t - 1])
-        lv = self.post_logvar.net[1:](F.linear(f, w_v) + pre_v[:, t - 1]).clamp(*LOGVAR_RANGE)
+        a_m, a_v = F.linear(f, w_m) + pre_m[:, t - 1], F.linear(f, w_v) + pre_v[:, t - 1]
+        if self.residual:
+            if gap is None:
+                raise ValueError("motion-dvae: a residual encoder needs the decoded state (the feedback wiring)")
+            gap = gap.clamp(-RESIDUAL_CLIP, RESIDUAL_CLIP)
+            a_m, a_v = a_m + self.res_mean(gap), a_v + self.res_logvar(gap)
+        mu = self.post_mean.net[1:](a_m)
+        lv = self.post_logvar.net[1:](a_v).clamp(*LOGVAR_RANGE)
         return mu, lv
 
     def forward(self, xn: torch.Tensor, x0n: torch.Tensor, sample: bool, generator=None, b=None):
@@ -303,12 +324,16 @@ class MotionDVAE(nn.Module):
     """The Motion-DVAE network with its denoising networks (module docstring for the wiring)."""
 
     def __init__(self, z_dim: int = 48, hidden: int = 1024, mlp_hidden: int = 1024, fps: float = FPS,
-                 feedback: bool = False):
+                 feedback: bool = False, encoder_residual: bool = False):
         super().__init__()
         self.z_dim, self.hidden, self.mlp_hidden, self.fps = int(z_dim), int(hidden), int(mlp_hidden), float(fps)
         # feedback: the encoders' forward recurrence reads the decoded state x^_{t-1} where it would
         # read x^_0 (see :meth:`infer`); the same parameters, a different wiring
         self.feedback = bool(feedback)
+        # encoder_residual: the clean encoder's heads also read target minus decoded pose (Encoder)
+        self.encoder_residual = bool(encoder_residual)
+        if self.encoder_residual and not self.feedback:
+            raise ValueError("motion-dvae: encoder_residual=True needs feedback=True (the residual is taken against the decoded state)")
         Z, H, M = self.z_dim, self.hidden, self.mlp_hidden
         # generative model (prior + decoder share gen_rnn)
         self.gen_rnn = nn.LSTM(Z + STATE_DIM, H, batch_first=True)
@@ -319,7 +344,7 @@ class MotionDVAE(nn.Module):
         # log-variance of p(x_t | x_0, z_{1:t}) per state dimension (standardised units), learned
         self.dec_logvar = nn.Parameter(torch.zeros(STATE_DIM))
         # inference model (clean data) and the denoising networks
-        self.encoder = Encoder(Z, H, M)
+        self.encoder = Encoder(Z, H, M, residual=self.encoder_residual)
         self.denoise_encoder = Encoder(Z, H, M)
         self.init_state = InitialStatePredictor(H, M)
         self.noise = NoisePredictor(H, M)
@@ -332,7 +357,7 @@ class MotionDVAE(nn.Module):
     @property
     def config(self) -> dict:
         return {"z_dim": self.z_dim, "hidden": self.hidden, "mlp_hidden": self.mlp_hidden, "fps": self.fps,
-                "feedback": self.feedback}
+                "feedback": self.feedback, "encoder_residual": self.encoder_residual}
 
     def parameter_counts(self) -> dict:
         def n(*mods):
@@ -408,7 +433,8 @@ class MotionDVAE(nn.Module):
         x = x0n
         zs, means, logvars, hs, xs = [], [], [], [hg], [x0n]
         for t in range(1, T):
-            mu, lv = enc.posterior(state[0], t, heads)
+            gap = xn[:, t, :POSE_DIM] - x[:, :POSE_DIM] if enc.residual else None
+            mu, lv = enc.posterior(state[0], t, heads, gap)
             z = mu + torch.exp(0.5 * lv) * _randn(mu, generator) if sample else mu
             hg, cg = _lstm_step(F.linear(z, gw_z) + g_const, hg, cg, g.weight_hh_l0, g.bias_hh_l0)
             x = x + dec_rest(F.linear(hg, dw_h) + F.linear(z, dw_z, dec_lin.bias))
@@ -455,9 +481,12 @@ class MotionDVAE(nn.Module):
         return torch.stack(zs, 1) if zs else x0.new_zeros(B, 0, self.z_dim)
 
     # losses
-    def dvae_loss(self, states: torch.Tensor, points: torch.Tensor, beta: float, point_weight: float = POINT_WEIGHT) -> dict:
+    def dvae_loss(self, states: torch.Tensor, points: torch.Tensor, beta: float, point_weight: float = POINT_WEIGHT,
+                  root_marker_m: float = 0.0) -> dict:
         """Clean-data loss for canonical states (B, T, 138) and their body points (B, T, P, 3);
-        ``point_weight`` multiplies the squared point errors (m^2)."""
+        ``point_weight`` multiplies the squared point errors (m^2). ``root_marker_m`` > 0 adds two
+        markers that far along the root's x and z axes to the points (the root's heading then weighs
+        like a lever of that length: a heading error of theta moves a path of length L by theta*L)."""
         xn = self.normalise(states)
         x0n = xn[:, 0]
         z, qm, qlv, h, rec_n = self.infer(self.encoder, xn, x0n, sample=True)
@@ -468,6 +497,10 @@ class MotionDVAE(nn.Module):
         kl = gaussian_kl(qm, qlv, pm, plv).sum(-1).mean()
         rot, trans = state_to_motion(self.unnormalise(rec_n[:, 1:]))
         pts = (body_points(rot, trans, self.rest_joints) - points[:, 1:]).square().sum(-1)
+        if root_marker_m:
+            gt_rot, _ = state_to_motion(states[:, 1:])
+            axes = (rot[..., 0, :, ::2] - gt_rot[..., 0, :, ::2]) * root_marker_m  # (B, T-1, 3, 2): x and z axes
+            pts = torch.cat([pts, axes.square().sum(-2)], -1)
         point_sq = pts.sum(-1).mean()
         loss = rec + beta * kl + point_weight * point_sq
         return {"loss": loss, "rec": rec, "kl": kl, "state_mse": sq.mean().detach(), "point_sq_m2": point_sq,

@@ -95,6 +95,7 @@ def train_motion_dvae(
     init_denoise_weights: str | Path | None = None,
     train_generative: bool = True,
     encoder_point_weight: float | None = None,
+    encoder_root_marker_m: float = 0.0,
     kl_anneal_fraction: float | None = None,
 ) -> tuple[MotionDVAE, dict]:
     """Train the embedded Motion-DVAE (phase 1: DVAE on clean windows; phase 2: denoising networks on
@@ -127,8 +128,8 @@ def train_motion_dvae(
         init_denoise = True
     if not train_generative and init_weights is None:
         raise ValueError("train_generative=False (encoder only) needs init_weights (a trained generative model)")
-    if encoder_point_weight is not None and train_generative:
-        raise ValueError("encoder_point_weight applies to encoder-only training (train_generative=False)")
+    if (encoder_point_weight is not None or encoder_root_marker_m) and train_generative:
+        raise ValueError("encoder_point_weight and encoder_root_marker_m apply to encoder-only training (train_generative=False)")
     pw = float(POINT_WEIGHT if encoder_point_weight is None else encoder_point_weight)  # phase 1's point weight
     cfg = dict(EMBEDDED_CONFIG, **(config or {}))
     data_info: dict = {}
@@ -188,7 +189,8 @@ def train_motion_dvae(
                 raise ValueError(f"init_denoise_weights {init_denoise_weights}: config {dcfg} does not match {cfg}")
             dkeep = ("denoise_encoder.", "init_state.", "noise.")
             part.update({k: v.float() for k, v in dsd.items() if k.startswith(dkeep)})
-        missing = [k for k in model.state_dict() if k.startswith(keep) and k not in part]
+        missing = [k for k in model.state_dict() if k.startswith(keep) and k not in part
+                   and not (k.startswith("encoder.res_") and not init_cfg.get("encoder_residual"))]  # they start at zero
         if missing:
             raise ValueError(f"init_weights {init_weights}: missing {missing[:5]}")
         model.load_state_dict(part, strict=False)
@@ -217,7 +219,9 @@ def train_motion_dvae(
         with torch.no_grad():
             states = pose_to_state(batch)
             pts = body_points(*state_to_motion(states), m.rest_joints)
-        return m.dvae_loss(states, pts, beta, point_weight=pw if m.training else POINT_WEIGHT)
+        if not m.training:
+            return m.dvae_loss(states, pts, beta, point_weight=POINT_WEIGHT)
+        return m.dvae_loss(states, pts, beta, point_weight=pw, root_marker_m=encoder_root_marker_m)
 
     for p in model.parameters():
         p.requires_grad_(False)
@@ -295,7 +299,7 @@ def train_motion_dvae(
             "optimiser": {"name": "Adam (shared train_loop)", "lr": lr, "schedule": "cosine to 0.1*lr", "batch_size": batch_size},
             "trained": (["gen_rnn", "prior_mean", "prior_logvar", "decoder", "dec_logvar"] if train_generative else []) + ["encoder"]
                        if steps > 0 else [],
-            "point_weight": pw, "validation_point_weight": POINT_WEIGHT,
+            "point_weight": pw, "validation_point_weight": POINT_WEIGHT, "root_marker_m": encoder_root_marker_m,
             "steps": steps, "train_wall_s": round(phase1_wall, 2), "s_per_step": round(r1.wall_s / max(steps, 1), 4),
             "final_train": r1.final_train, "final_val": r1.final_val, "history": r1.history,
         },
@@ -331,6 +335,12 @@ def main(argv: list[str] | None = None) -> None:
                     help="phase 1 trains the clean encoder only (the generative model of --init stays as it is)")
     ap.add_argument("--encoder-point-weight", type=float, default=None,
                     help="with --encoder-only: the point-error weight of the clean encoder's loss (default: the DVAE's)")
+    ap.add_argument("--encoder-root-marker", type=float, default=0.0, metavar="M",
+                    help="with --encoder-only: two extra markers M metres along the root's x and z axes in the clean "
+                         "encoder's point loss (weighs the root heading like a lever of M metres)")
+    ap.add_argument("--encoder-residual", action="store_true",
+                    help="the clean encoder also reads target minus decoded pose (config encoder_residual; "
+                         "from an --init without it, its weights start at zero)")
     ap.add_argument("--init-denoise", action="store_true", help="phase 2 continues the denoising networks of --init")
     ap.add_argument("--denoise-from", default=None, help="phase 2 starts from the denoising networks of this motion_dvae.pt")
     ap.add_argument("--checkpoint-dir", default=None,
@@ -348,7 +358,9 @@ def main(argv: list[str] | None = None) -> None:
                                    init_weights=args.init, lr=args.lr, denoise_lr=args.denoise_lr,
                                    init_denoise=args.init_denoise, init_denoise_weights=args.denoise_from,
                                    train_generative=not args.encoder_only,
-                                   encoder_point_weight=args.encoder_point_weight)
+                                   encoder_point_weight=args.encoder_point_weight,
+                                   encoder_root_marker_m=args.encoder_root_marker,
+                                   config={"encoder_residual": True} if args.encoder_residual else None)
     print({k: rec[k] for k in ("train_wall_s", "checkpoint_bytes")})
 
 
