@@ -431,8 +431,8 @@ def test_root_markers_weigh_the_root_heading():
 
 def test_residual_training_from_a_checkpoint_without_it(tmp_path):
     windows = smooth_windows(16, 8, seed=3)
-    base, _ = train_motion_dvae(None, steps=1, denoise_steps=1, config=TINY, batch_size=8, windows=windows,
-                                rest_joints=REST, log_every=10)
+    base, _ = train_motion_dvae(None, steps=1, denoise_steps=1, config=dict(TINY, encoder_residual=False), batch_size=8,
+                                windows=windows, rest_joints=REST, log_every=10)
     assert base.feedback and not base.encoder_residual
     path = training.save_checkpoint(tmp_path / "motion_dvae.pt", base.state_dict(), base.config)
     model, record = train_motion_dvae(None, steps=2, denoise_steps=0, config=dict(TINY, encoder_residual=True),

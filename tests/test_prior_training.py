@@ -126,3 +126,15 @@ def test_train_resume_without_a_state_names_the_folder(tmp_path):
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2, r.stderr
     assert "no training state in" in r.stderr and str(tmp_path / ".train_state" / "vposer-slerp") in r.stderr
+
+
+def test_committed_weights_fit_the_budget():
+    """Issue 13: the embedded weights and their records together stay within 60 MB (a new prior or a larger
+    embedded size must make room: float16 storage where no metric moves by more than 0.1 mm)."""
+    from pathlib import Path
+
+    folder = Path(training.__file__).resolve().parent / "weights"
+    files = [p for p in folder.iterdir() if p.is_file()]
+    assert {p.suffix for p in files} <= {".pt", ".json"}
+    total = sum(p.stat().st_size for p in files)
+    assert total <= 60_000_000, f"{folder}: {total / 1e6:.2f} MB of weights and records, over the 60 MB budget"

@@ -21,7 +21,7 @@ FPS = 30.0
 POSE_DIM = 3 + 3 + 3 * (NUM_JOINTS - 1)  # trans, root, 21 body joints = 69
 STATE_DIM = 2 * POSE_DIM  # + velocities = 138
 PAPER_CONFIG = {"z_dim": 48, "hidden": 1024, "mlp_hidden": 1024}
-EMBEDDED_CONFIG = {"z_dim": 48, "hidden": 256, "mlp_hidden": 256, "feedback": True}
+EMBEDDED_CONFIG = {"z_dim": 48, "hidden": 256, "mlp_hidden": 256, "feedback": True, "encoder_residual": True}
 
 MARKER_OFFSET = 0.1  # metres, virtual markers along each joint frame's x and z axes
 POINT_WEIGHT = 100.0  # weight of the squared point errors (metres^2) in the DVAE loss

@@ -245,7 +245,9 @@ def train_motion_dvae(
     # phase 2: denoising networks on noisy copies; prior, decoder and clean encoder frozen
     if not (init_weights is not None and init_denoise) and denoise_steps > 0:
         with torch.no_grad():
-            model.denoise_encoder.load_state_dict(model.encoder.state_dict())
+            # the denoising encoder has no residual input (Encoder docstring): every other weight is copied
+            model.denoise_encoder.load_state_dict({k: v for k, v in model.encoder.state_dict().items()
+                                                   if not k.startswith("res_")})
     for p in model.parameters():
         p.requires_grad_(False)
     for mod in (model.denoise_encoder, model.init_state, model.noise):
