@@ -445,3 +445,8 @@ def test_residual_training_from_a_checkpoint_without_it(tmp_path):
     with pytest.raises(ValueError, match="encoder-only"):
         train_motion_dvae(None, steps=1, denoise_steps=0, config=TINY, windows=windows, rest_joints=REST,
                           encoder_root_marker_m=1.0)
+    # a residual encoder is not silently dropped into a config without it
+    path = training.save_checkpoint(tmp_path / "res.pt", model.state_dict(), model.config)
+    with pytest.raises(ValueError, match="have no place in config"):
+        train_motion_dvae(None, steps=1, denoise_steps=0, config=dict(TINY, encoder_residual=False), batch_size=8,
+                          windows=windows, rest_joints=REST, init_weights=path, train_generative=False)

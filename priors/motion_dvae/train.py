@@ -6,6 +6,7 @@ retrains the embedded weights.
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import logging
 import time
@@ -193,6 +194,10 @@ def train_motion_dvae(
                    and not (k.startswith("encoder.res_") and not init_cfg.get("encoder_residual"))]  # they start at zero
         if missing:
             raise ValueError(f"init_weights {init_weights}: missing {missing[:5]}")
+        unexpected = [k for k in part if k not in model.state_dict()]
+        if unexpected:  # e.g. a residual encoder loaded into a config without it: its weights would be dropped
+            raise ValueError(f"init_weights {init_weights}: keys {unexpected[:5]} have no place in config {cfg} "
+                             f"(the checkpoint's config is {init_cfg}); train with the checkpoint's config")
         model.load_state_dict(part, strict=False)
         init_info = {"path": str(init_weights), "sha256": hashlib.sha256(Path(init_weights).read_bytes()).hexdigest(),
                      "loaded": "generative model, clean encoder, state statistics (its own, not recomputed)"
@@ -340,9 +345,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--encoder-root-marker", type=float, default=0.0, metavar="M",
                     help="with --encoder-only: two extra markers M metres along the root's x and z axes in the clean "
                          "encoder's point loss (weighs the root heading like a lever of M metres)")
-    ap.add_argument("--encoder-residual", action="store_true",
-                    help="the clean encoder also reads target minus decoded pose (config encoder_residual; "
-                         "from an --init without it, its weights start at zero)")
+    ap.add_argument("--encoder-residual", action=argparse.BooleanOptionalAction, default=None,
+                    help="whether the clean encoder also reads target minus decoded pose (config encoder_residual; "
+                         "default: on, as the embedded weights; from an --init without it, its weights start at zero)")
     ap.add_argument("--init-denoise", action="store_true", help="phase 2 continues the denoising networks of --init")
     ap.add_argument("--denoise-from", default=None, help="phase 2 starts from the denoising networks of this motion_dvae.pt")
     ap.add_argument("--checkpoint-dir", default=None,
@@ -362,7 +367,7 @@ def main(argv: list[str] | None = None) -> None:
                                    train_generative=not args.encoder_only,
                                    encoder_point_weight=args.encoder_point_weight,
                                    encoder_root_marker_m=args.encoder_root_marker,
-                                   config={"encoder_residual": True} if args.encoder_residual else None)
+                                   config=None if args.encoder_residual is None else {"encoder_residual": args.encoder_residual})
     print({k: rec[k] for k in ("train_wall_s", "checkpoint_bytes")})
 
 
