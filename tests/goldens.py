@@ -30,12 +30,16 @@ NOT_COMPARED = {"s_per_frame"}
 # cache differ) into MPJPE changes of up to 13.8 mm and PA-MPJPE changes of up to 7.9 mm (smoke
 # profile, two perturbation seeds and one fresh cache against the golden), while the 5- and 15-frame
 # gaps move by under 0.05 mm. A 3 mm tolerance there made CI pass or fail with the cache build.
-# The embedded Motion-DVAE's table1 fit (smoke, 100 points / 5 fps, retrained weights of issue 13)
-# moves with the torch thread count: the golden, made on one thread, has MPJPE 170.9 mm; the same
-# observation ('input': same) fitted on two threads (what CI runs) gave 177.0 mm; its Chamfer stayed
-# within 1 mm.
+# The embedded Motion-DVAE's table1 fits (smoke, all six cells, the clean encoder with the residual
+# input of issue 13) are chaotic too: its start is far outside the prior's training data (README,
+# table1 paragraph), and uniform noise of +-3e-8 m on Anny's blendshapes and template (three seeds,
+# `run_table` on the smoke profile against this golden) moved a cell's MPJPE by up to 141.7 mm and
+# its Chamfer by up to 33.1 mm; one and two torch threads gave the same numbers. Its tolerances cover
+# that spread with a margin: they catch a row that breaks by metres, not a change of centimetres; the
+# other rows keep the table's tolerances.
 CHAOTIC = {("inbetween", "motion-dvae", "mpjpe_mm"): 20.0, ("inbetween", "motion-dvae", "pa_mpjpe_mm"): 12.0,
-           ("table1", "motion-dvae", "mpjpe_mm"): 15.0}
+           ("table1", "motion-dvae", "mpjpe_mm"): 200.0, ("table1", "motion-dvae", "chamfer_mm"): 50.0,
+           ("table1", "motion-dvae", "chamfer_surface_mm"): 50.0}
 
 
 def tolerances(spec: dict) -> dict:
