@@ -3,7 +3,9 @@ comparison, and the explicit rewrite, shared by the smoke and quick regression t
 
 Tolerances are in the metrics' units. table1 has its own (:data:`TABLE_TOLERANCES`); the other
 tables go by unit suffix (``*_mm``: 3 mm), accelerations get 0.5 m/s^2, other unitless metrics 0.05,
-and measured timings (``s_per_frame``) are never compared.
+and measured timings (``s_per_frame``) are never compared. Measured chaotic cells get wider absolute
+tolerances (:data:`CHAOTIC`), and the metrics that move between machines a relative one
+(:data:`CROSS_MACHINE`).
 """
 
 from __future__ import annotations
@@ -39,9 +41,27 @@ NOT_COMPARED = {"s_per_frame"}
 # its Chamfer by up to 33.1 mm; one and two torch threads gave the same numbers. Its tolerances cover
 # that spread with a margin: they catch a row that breaks by metres, not a change of centimetres; the
 # other rows keep the table's tolerances.
+# The same re-run on the AMD machine moved Motion-DVAE's sls fit at p100 by 3.5 mm MPJPE and 2.0 mm
+# landmark error (its encoder-started fits are chaotic in sls too); they get 10 mm.
 CHAOTIC = {("inbetween", "motion-dvae", "mpjpe_mm"): 20.0, ("inbetween", "motion-dvae", "pa_mpjpe_mm"): 12.0,
+           ("sls", "motion-dvae", "mpjpe_mm"): 10.0, ("sls", "motion-dvae", "landmark_mm"): 10.0,
            ("table1", "motion-dvae", "mpjpe_mm"): 200.0, ("table1", "motion-dvae", "chamfer_mm"): 50.0,
            ("table1", "motion-dvae", "chamfer_surface_mm"): 50.0}
+
+
+# Relative tolerances for the spread between machines: (table, metric) -> a fraction of the golden
+# value. A difference passes when it is within the absolute tolerance or within this fraction of the
+# golden number. Measured on the smoke goldens (made on an Intel Xeon) re-run on an AMD EPYC (AVX-512,
+# the same torch 2.13.0 CPU wheel; its own Anny cache build, so every observation fingerprint
+# differs), with 1 and with 2 torch threads: the table1 100 points / 5 fps cell moved by up to 14 %
+# (sequential-primitives MPJPE 63.6 -> 54.8 mm, structured-latent Chamfer 50.0 -> 56.6, no-prior
+# MPJPE 50.6 -> 46.6, VPoser+SLERP MPJPE 39.5 -> 43.0), as smoke fits are short and their start
+# searches pick among discrete candidates; the denoising optimisation's output acceleration by up
+# to 3.9 % (HM-VAE 136.1 -> 141.5 m/s^2), its V2V and MPJPE by under 1.5 mm; reconstruction and
+# in-betweening stayed within their absolute tolerances. The fractions below cover that spread
+# with a margin: a broken fit moves these numbers by far more.
+CROSS_MACHINE = {("table1", "chamfer_mm"): 0.25, ("table1", "chamfer_surface_mm"): 0.25, ("table1", "mpjpe_mm"): 0.25,
+                 ("denoise", "accel"): 0.10}
 
 
 def tolerances(spec: dict) -> dict:
@@ -65,6 +85,21 @@ def _within_chaotic(table: str, row: dict) -> bool:
     tol = CHAOTIC.get((table, row.get("prior"), row.get("metric")))
     diff = row.get("diff")
     return tol is not None and row.get("status") == "out of tolerance" and diff is not None and abs(diff) <= tol
+
+
+def _within_cross_machine(table: str, row: dict) -> bool:
+    """A difference that only the relative tolerance of :data:`CROSS_MACHINE` accepts: at most that
+    fraction of the golden value (``a``)."""
+    frac = CROSS_MACHINE.get((table, row.get("metric")))
+    diff, golden = row.get("diff"), row.get("a")
+    return (frac is not None and row.get("status") == "out of tolerance" and diff is not None and golden is not None
+            and abs(diff) <= frac * abs(golden))
+
+
+def accepted(table: str, row: dict) -> bool:
+    """Whether a comparison row of :func:`benchmark.compare.compare_tables` passes: within the
+    absolute tolerance, a chaotic cell's wider one, or the cross-machine relative one."""
+    return row.get("ok", True) or _within_chaotic(table, row) or _within_cross_machine(table, row)
 
 
 def restrict_to_grid(table: dict, grid: dict) -> dict:
@@ -111,6 +146,7 @@ def check_or_update(table: dict, path: Path, spec: dict, update: bool, grid: dic
         golden = restrict_to_grid(golden, grid)
         assert all(row["cells"] for row in golden["rows"]), f"{path} lacks cells of {grid}: regenerate it with --update-goldens"
     ok, rows = compare_tables(golden, table, tolerances(spec))
-    problems = [r for r in rows if not r.get("ok", True) and not _within_chaotic(spec["name"], r)]
-    assert not problems, f"{path.name}: {spec['name']} differs from the committed table beyond tolerance: {problems[:6]}"
+    problems = [r for r in rows if not accepted(spec["name"], r)]
+    assert not problems, (f"{path.name}: {spec['name']} differs from the committed table beyond tolerance in "
+                          f"{len(problems)} comparison(s): {problems[:6]}")
     warn_if_inputs_changed(golden, table, spec["name"])

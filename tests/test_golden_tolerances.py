@@ -1,0 +1,41 @@
+"""The regression tolerances of :mod:`goldens`: what a comparison row must be to pass."""
+
+from goldens import CHAOTIC, CROSS_MACHINE, accepted
+
+
+def _row(metric, a, b, prior="no-prior", tol=3.0):
+    diff = b - a
+    ok = abs(diff) <= tol
+    return {"kind": "cell", "prior": prior, "metric": metric, "a": a, "b": b, "diff": diff, "tol": tol,
+            "status": "ok" if ok else "out of tolerance", "ok": ok}
+
+
+def test_absolute_tolerance_passes_and_fails():
+    assert accepted("reconstruction", _row("mpjpe_mm", 40.0, 42.9))
+    assert not accepted("reconstruction", _row("mpjpe_mm", 40.0, 43.5))
+
+
+def test_cross_machine_fraction_of_the_golden_value():
+    frac = CROSS_MACHINE[("table1", "mpjpe_mm")]
+    golden = 60.0
+    assert accepted("table1", _row("mpjpe_mm", golden, golden * (1 + 0.9 * frac)))
+    assert accepted("table1", _row("mpjpe_mm", golden, golden * (1 - 0.9 * frac)))
+    assert not accepted("table1", _row("mpjpe_mm", golden, golden * (1 + 1.1 * frac)))
+    # a row that doubles is a broken fit, not a machine
+    assert not accepted("table1", _row("chamfer_mm", 20.0, 40.0, tol=1.0))
+    # the fraction is the table's and metric's: reconstruction keeps its absolute 3 mm
+    assert ("reconstruction", "mpjpe_mm") not in CROSS_MACHINE
+    assert not accepted("reconstruction", _row("mpjpe_mm", 60.0, 66.0))
+
+
+def test_chaotic_cells_are_per_prior():
+    tol = CHAOTIC[("sls", "motion-dvae", "mpjpe_mm")]
+    assert accepted("sls", _row("mpjpe_mm", 100.0, 100.0 + 0.9 * tol, prior="motion-dvae"))
+    assert not accepted("sls", _row("mpjpe_mm", 100.0, 100.0 + 0.9 * tol, prior="hmvae"))
+    assert not accepted("sls", _row("mpjpe_mm", 100.0, 100.0 + 1.1 * tol, prior="motion-dvae"))
+
+
+def test_missing_or_failed_rows_are_never_accepted():
+    row = {"kind": "cell", "prior": "no-prior", "metric": "mpjpe_mm", "a": 50.0, "b": None, "diff": None,
+           "status": "missing in B", "ok": False}
+    assert not accepted("table1", row)
