@@ -93,8 +93,9 @@ vertices but no joint, are penalised), in millimetres.
    reconstruction term is evaluated on 32 random frames of the 128 per step (an unbiased estimate of
    the official mean over all frames; forward kinematics and VPoser decoding dominate the step
    otherwise). Adam lr 5e-4 cosine to 5e-5, weight decay 1e-4 (official ``reg_coef``), batch 32,
-   2,500 steps (about 0.25 s of CPU time each on one core, a third of it in Adam over the 4.2 M
-   ``dct_att`` weights): about 10.5 min, 12-13 min with stage 1 and data preparation. The official
+   8,000 steps (about 0.1-0.25 s of CPU time each on one core, a third of it in Adam over the 4.2 M
+   ``dct_att`` weights): 15 min with stage 1 and data preparation for the committed weights (with
+   2,500 steps the validation reconstruction was 34.5 mm and still falling; 20.8 mm now). The official
    lr 1e-4 / batch 60 / 250 epochs do not fit a CPU budget. Validation losses are computed in eval
    mode (yaw 0, z = posterior mean, all frames).
 

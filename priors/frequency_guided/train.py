@@ -28,7 +28,7 @@ VPOSER_KL = 1e-4  # official v1 kl_coef (vposer_smpl_defaults.ini)
 MOTION_KL = 1e-2  # official kl_coef (motion_prior_defaults.ini)
 VPOSE_COEF = 1e-3  # official vpose_coef
 MM = 1000.0
-DEFAULT_STEPS = 2500
+DEFAULT_STEPS = 8000
 DEFAULT_VPOSER_STEPS = 3000
 
 
