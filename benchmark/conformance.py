@@ -135,17 +135,42 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
             verts = body.skin(body.prepare(st.shape()), rot, tr).vertices
             from benchmark.metrics.chamfer import chamfer_loss
 
-            loss = chamfer_loss(verts.flatten(0, 1), batch.points.flatten(0, 1), b_lengths=batch.lengths.flatten()).sum()
-            loss = loss + 0.01 * a.prior_term(st.latents).sum()
-            loss.backward()
+            # the data term alone: a prior term reaches the latents even when the decoder ignores them
+            data = chamfer_loss(verts.flatten(0, 1), batch.points.flatten(0, 1), b_lengths=batch.lengths.flatten()).sum()
+            data.backward()
             constant = set(getattr(a, "constant_latents", ()))  # e.g. the window length a decoder reads
             dead = [k for k, v in st.latents.items() if k not in constant
                     and (v.grad is None or not torch.isfinite(v.grad).all() or v.grad.abs().sum() == 0)]
             if dead:
-                raise ValueError(f"no finite non-zero gradient reaches latents {dead}")
-            return "all latents receive gradients"
+                raise ValueError(f"the decoded motion does not depend on latents {dead}: no finite non-zero gradient "
+                                 "of the data term reaches them (does decode() read them, without detaching?)")
+            prior = a.prior_term(st.latents).sum()
+            if not torch.isfinite(prior):
+                raise ValueError(f"prior term is {prior.item()}")
+            return "the data term's gradient reaches every latent"
 
         rep.check(f"{label}: gradients reach the latents", gradients)
+
+        def decode_depends_on_latents():
+            st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu")
+            constant = set(getattr(a, "constant_latents", ()))
+            with torch.no_grad():
+                rot0, tr0 = body_parameters(st, batch.output_timestamps)
+                g = torch.Generator().manual_seed(1)
+                for k, v in st.latents.items():
+                    if k in constant:
+                        continue
+                    saved = v.detach().clone()
+                    v.add_(0.1 * torch.randn(v.shape, generator=g, dtype=v.dtype).to(v.device))
+                    rot1, tr1 = body_parameters(st, batch.output_timestamps)
+                    v.copy_(saved)
+                    moved = max((rot1 - rot0).abs().max().item(), (tr1 - tr0).abs().max().item())
+                    if not moved > 1e-6:
+                        raise ValueError(f"moving latent {k!r} by 0.1 (per element) leaves the decoded motion unchanged "
+                                         f"(largest change {moved:.1e}): decode() must depend on it")
+            return "moving any latent moves the decoded motion"
+
+        rep.check(f"{label}: decoded motion depends on the latents", decode_depends_on_latents)
 
         def finite_and_deterministic():
             runs = []
