@@ -24,7 +24,8 @@ process, so two workers on one cell would each compute it.
 
 A unit that raises on a worker comes back as a :class:`UnitError` carrying the worker's traceback;
 the other units go on. A worker process that dies (out of memory, a crash in native code) fails
-the unit it was running and is replaced.
+the unit it was running and is replaced. Ctrl-C or SIGTERM to the driver (:mod:`benchmark.interrupts`)
+stops the workers, local or Ray, and leaves no temporary file behind.
 """
 
 from __future__ import annotations
@@ -35,10 +36,17 @@ import math
 import os
 import pickle
 import re
+import shutil
+import signal
 import socket
+import sys
+import tempfile
+import threading
+import time
 import traceback
 import uuid
 from collections import deque
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -215,45 +223,138 @@ def default_jobs(device: str = "cpu") -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _process_worker(conn, payload_path: str, threads: int) -> None:
-    """Worker process main: load the executor once (from the file the driver wrote), say
-    ``ready``, then run the units the driver sends one at a time until it sends ``None``."""
-    import signal
+def _die_with_driver(driver_pid: int) -> None:
+    """Linux: ask the kernel to send this worker SIGTERM when the driver process ends, however it
+    ends (even SIGKILL), so that no worker outlives it; exit now if it has already gone."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the driver handles Ctrl-C and stops the workers
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # 1: PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != driver_pid:
+        os._exit(0)
+
+
+def _process_worker(conn, payload_path: str, threads: int, driver_pid: int | None = None) -> None:
+    """Worker process main: load the executor once (from the file the driver wrote), say
+    ``ready``, then run the units the driver sends one at a time until it sends ``None``.
+
+    Signals: Ctrl-C reaches every process of the terminal's group; a worker ignores it (the driver
+    stops the workers). The driver starts workers with SIGINT blocked, so that none can arrive
+    before this point. SIGTERM keeps its default action: the driver's ``terminate()`` ends a worker
+    at once, silently. A driver that is gone (its end of the pipe closed) ends the worker quietly."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # discards a Ctrl-C pending since the start
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    if driver_pid is not None:
+        _die_with_driver(driver_pid)
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(threads)
     try:
-        _set_threads(threads)
-        with open(payload_path, "rb") as fh:
-            execute = pickle.load(fh)
-    except BaseException:
-        conn.send(("init-error", traceback.format_exc(), _where()))
+        try:
+            _set_threads(threads)
+            with open(payload_path, "rb") as fh:
+                execute = pickle.load(fh)  # the harness's own file, in a folder only this user can read
+        except BaseException:
+            conn.send(("init-error", traceback.format_exc(), _where()))
+            return
+        conn.send(("ready",))
+        while True:
+            try:
+                unit = conn.recv()
+            except (EOFError, OSError):
+                return
+            if unit is None:
+                return
+            reply = _execute_unit(execute, unit)
+            try:
+                conn.send(reply)
+            except (BrokenPipeError, ConnectionResetError):
+                raise
+            except Exception as exc:  # a result that cannot be pickled back
+                conn.send(("error", type(exc).__name__, f"the unit's result could not be sent back: {exc}",
+                           traceback.format_exc(), _where()))
+    except (BrokenPipeError, ConnectionResetError, EOFError):
+        return  # the driver has gone (stopped, interrupted): nobody to answer, nothing to report
+
+
+EXECUTOR_FOLDER_PREFIX = "benchmark-executor-"
+
+
+def _host_tag() -> str:
+    return re.sub(r"[^A-Za-z0-9.-]+", "_", socket.gethostname())[:64] or "host"
+
+
+def _executor_folder() -> str:
+    """A new folder only this user can open (``mkdtemp``: mode 0700) for the executor's pickle,
+    ``$TMPDIR/benchmark-executor-<host>-<pid>-<random>``. The name says which process owns it, so
+    that folders left by a driver that was killed outright (SIGKILL, the out-of-memory killer:
+    nothing of it runs to remove them) are removed here, by the next run on the same host."""
+    _remove_stale_executor_folders()
+    return tempfile.mkdtemp(prefix=f"{EXECUTOR_FOLDER_PREFIX}{_host_tag()}-{os.getpid()}-")
+
+
+def _remove_stale_executor_folders() -> None:
+    """Remove this user's executor folders whose driver (this host, that pid) no longer exists."""
+    name = re.compile(re.escape(EXECUTOR_FOLDER_PREFIX + _host_tag()) + r"-(\d+)-[^-]+")
+    try:
+        entries = list(os.scandir(tempfile.gettempdir()))
+    except OSError:
         return
-    conn.send(("ready",))
-    while True:
+    for entry in entries:
+        match = name.fullmatch(entry.name)
+        if not match or int(match.group(1)) == os.getpid():
+            continue
         try:
-            unit = conn.recv()
-        except (EOFError, OSError):
-            return
-        if unit is None:
-            return
-        reply = _execute_unit(execute, unit)
-        try:
-            conn.send(reply)
-        except Exception as exc:  # a result that cannot be pickled back
-            conn.send(("error", type(exc).__name__, f"the unit's result could not be sent back: {exc}",
-                       traceback.format_exc(), _where()))
+            if not entry.is_dir(follow_symlinks=False) or entry.stat(follow_symlinks=False).st_uid != os.getuid():
+                continue
+            os.kill(int(match.group(1)), 0)
+        except ProcessLookupError:  # its driver is gone
+            shutil.rmtree(entry.path, ignore_errors=True)
+            log.info("removed %s, left by a run killed before it could remove it", entry.path)
+        except OSError:  # alive (perhaps another user's process), or unreadable: leave it
+            continue
+
+
+def _write_private(path: str, data: bytes) -> None:
+    """Write ``data`` to a new file only this user can read (0600)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "wb") as fh:
+        fh.write(data)
+
+
+@contextmanager
+def _sigint_blocked():
+    """SIGINT blocked in this thread while it starts a worker process: the worker inherits the
+    blocked mask and unblocks SIGINT only once it ignores it (:func:`_process_worker`), so that a
+    Ctrl-C at that moment cannot print a KeyboardInterrupt traceback from a half-started worker.
+    The driver does not lose the Ctrl-C: another thread takes it, or it waits until the unblock."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 class ProcessBackend:
     """Run units in ``jobs`` worker processes on this machine, ``threads`` torch threads each.
 
     Workers are started with the ``spawn`` method (no fork of a process that holds torch thread
-    pools); the executor is pickled once here, into a temporary file that each worker loads once.
-    A worker runs one unit at a time, so a worker that dies fails exactly the unit it was running;
-    it is replaced and the other units go on. A worker that cannot start (or cannot load the
-    executor) stops the run with its error.
+    pools); the executor is pickled once here, into a temporary folder only this user can read
+    (``benchmark-executor-*`` under ``$TMPDIR``), which each worker loads once; the folder is removed
+    when the call returns, however it returns. A worker runs one unit at a time, so a worker that
+    dies fails exactly the unit it was running; it is replaced and the other units go on. A worker
+    that cannot start (or cannot load the executor) stops the run with its error.
+
+    Stopping: an exception in this process (Ctrl-C's KeyboardInterrupt, SIGTERM's
+    :class:`benchmark.interrupts.Terminated`, an error) stops every worker before it propagates;
+    the units already handed to ``on_done`` are stored, the ones running are lost. Workers ignore
+    Ctrl-C, and on Linux they die with the driver even when it is killed outright.
     """
 
     def __init__(self, jobs: int, threads: int = 1, start_method: str = "spawn"):
@@ -272,24 +373,24 @@ class ProcessBackend:
         if not units:
             return
         import multiprocessing as mp
-        import tempfile
         from multiprocessing.connection import wait
 
         queue = deque(longest_first(units, execute))
         payload = _dumps_executor(execute)
-        fd, payload_path = tempfile.mkstemp(prefix="benchmark-executor-", suffix=".pkl")
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
-        del payload
         ctx = mp.get_context(self.start_method)
+        # a private folder (mode 0700, mkdtemp's) for the pickle the workers load: removed in the
+        # finally below, on success, on errors and on Ctrl-C / SIGTERM alike
+        folder = _executor_folder()
+        payload_path = os.path.join(folder, "executor.pkl")
         workers: list[dict] = []  # {"proc", "conn", "unit", "ready", "keys"}
         claimed: set = set()  # affinity keys of the units any worker has started
 
         def start() -> None:
             parent, child = ctx.Pipe(duplex=True)
-            proc = ctx.Process(target=_process_worker, args=(child, payload_path, self.threads),
+            proc = ctx.Process(target=_process_worker, args=(child, payload_path, self.threads, os.getpid()),
                                name="benchmark-unit-worker", daemon=True)
-            proc.start()
+            with _sigint_blocked():
+                proc.start()
             child.close()
             workers.append({"proc": proc, "conn": parent, "unit": None, "ready": False, "keys": set()})
 
@@ -323,6 +424,8 @@ class ProcessBackend:
                 start()
 
         try:
+            _write_private(payload_path, payload)
+            del payload
             for _ in range(min(self.jobs, len(queue))):
                 start()
             while workers:
@@ -370,14 +473,21 @@ class ProcessBackend:
                         on_done(unit, result, error)
                     feed(w)
         finally:
+            # the loop ends with no worker left, unless it was cut short (an error, Ctrl-C, SIGTERM):
+            # then the idle workers are let go, the busy or starting ones stopped now (SIGTERM; they
+            # die silently), the executor's folder removed, and only then is any worker waited for
             for w in workers:
                 try:
                     if w["unit"] is None and w["ready"]:
                         w["conn"].send(None)
+                        continue
                 except OSError:
                     pass
+                w["proc"].terminate()
+            shutil.rmtree(folder, ignore_errors=True)
+            deadline = time.monotonic() + 2
             for w in workers:
-                w["proc"].join(timeout=2 if w["unit"] is None else 0)
+                w["proc"].join(timeout=max(0.0, deadline - time.monotonic()))
                 if w["proc"].is_alive():
                     w["proc"].terminate()
                     w["proc"].join(timeout=5)
@@ -385,10 +495,6 @@ class ProcessBackend:
                     w["conn"].close()
                 except OSError:
                     pass
-            try:
-                os.unlink(payload_path)
-            except OSError:
-                pass
 
 
 # --------------------------------------------------------------------------------------------
@@ -450,6 +556,25 @@ def _ray_task(token: str, boxed_ref: list, unit, threads: int, fingerprint: str 
     return _execute_unit(execute, unit)
 
 
+@contextmanager
+def _keep_sigterm_handler():
+    """``ray.init`` replaces the driver's SIGTERM handler (with ``sys.exit``, and, in C, with a crash
+    reporter that prints a stack and aborts the process 3 s later). Where the CLI's handler was in
+    place (:func:`benchmark.interrupts.sigterm_raises`), it is put back afterwards (which removes
+    Ray's C handler too), so that SIGTERM unwinds the run like Ctrl-C: the pending tasks are
+    cancelled, the Ray runtime shut down (the ``finally`` of :meth:`RayBackend.__call__`), the
+    ``--out`` lock released, exit 143."""
+    from benchmark.interrupts import is_terminated_handler
+
+    previous = signal.getsignal(signal.SIGTERM)
+    ours = threading.current_thread() is threading.main_thread() and is_terminated_handler(previous)
+    try:
+        yield
+    finally:
+        if ours:
+            signal.signal(signal.SIGTERM, previous)
+
+
 def _import_ray():
     try:
         import ray
@@ -501,17 +626,18 @@ class RayBackend:
         if ray.is_initialized():
             return False
         env = {var: str(self.threads) for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-        if self.address is None:
-            num_cpus = self.num_cpus or default_jobs("cpu")
-            log.info("starting a local Ray runtime with %d CPUs", num_cpus)
-            ray.init(num_cpus=num_cpus, include_dashboard=False, runtime_env={"env_vars": env})
-        else:
-            log.info("joining the Ray cluster at %s", self.address)
-            try:
-                ray.init(address=self.address, runtime_env={"env_vars": env})
-            except ConnectionError as exc:
-                raise ValueError(f"--ray-address {self.address}: no Ray cluster there ({exc}); start one with "
-                                 f"'ray start --head' (README, 'Scale out')") from exc
+        with _keep_sigterm_handler():
+            if self.address is None:
+                num_cpus = self.num_cpus or default_jobs("cpu")
+                log.info("starting a local Ray runtime with %d CPUs", num_cpus)
+                ray.init(num_cpus=num_cpus, include_dashboard=False, runtime_env={"env_vars": env})
+            else:
+                log.info("joining the Ray cluster at %s", self.address)
+                try:
+                    ray.init(address=self.address, runtime_env={"env_vars": env})
+                except ConnectionError as exc:
+                    raise ValueError(f"--ray-address {self.address}: no Ray cluster there ({exc}); start one with "
+                                     f"'ray start --head' (README, 'Scale out')") from exc
         return True
 
     def _check_resources(self, ray) -> None:

@@ -65,6 +65,8 @@ def _cmd_perf(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from benchmark import argtypes as at
+
     parser = argparse.ArgumentParser(
         prog="python -m benchmark",
         description="Reference benchmark harness for human motion priors.",
@@ -84,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     c.add_argument("input")
     c.add_argument("--out", required=True, help="output .npz (never overwritten without --force)")
-    c.add_argument("--fps", type=float, default=None, help="resample to this rate (default: keep the source rate)")
+    c.add_argument("--fps", type=at.fps, default=None, help="resample to this rate (default: keep the source rate)")
     c.add_argument("--force", action="store_true", help="overwrite an existing output file")
     c.add_argument("--body", default=None, help="store the motion's shape for this body model (anny | smpl | smplh | "
                    "smplx[=PATH[:gender]]): SMPL betas cut or zero-padded to the model's, another body's shape dropped")
@@ -92,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     b = dsub.add_parser("build", help="generate (or check the cache of) a synthetic split",
                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     b.add_argument("split", choices=["test", "train", "val"])
-    b.add_argument("--seed", type=int, default=None, help="override the split's seed")
+    b.add_argument("--seed", type=at.seed, default=None, help="override the split's seed")
     b.add_argument("--rebuild", action="store_true")
     b.set_defaults(func=_cmd_data_build)
     from benchmark.synthetic.scan_set import add_make_scans_command
@@ -163,11 +165,14 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else 2
+    from benchmark.interrupts import exit_code, sigterm_raises, stop_message
+
     try:
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+        with sigterm_raises():  # SIGTERM unwinds like Ctrl-C: workers stopped, temp files removed, --out unlocked
+            return int(args.func(args) or 0)
+    except KeyboardInterrupt as exc:  # Ctrl-C (exit 130), or SIGTERM (Terminated, exit 143)
+        print(stop_message(exc), file=sys.stderr)
+        return exit_code(exc)
     except Exception as exc:  # every error is one line naming the file / field / fix; --debug shows where
         if debug:
             traceback.print_exc()

@@ -42,12 +42,27 @@ def _device(name: str | None) -> str:
     return name
 
 
+def _opset(text):
+    """``--opset``: an opset :func:`benchmark.export_onnx.export_onnx` takes (its range comes from
+    torch, imported only when the option is given)."""
+    from benchmark.argtypes import Number
+    from benchmark.export_onnx import supported_opsets
+
+    lo, hi = supported_opsets()
+    return Number(int, lo, hi)(text)
+
+
+_opset.__name__ = "ONNX opset"
+
+
 def _parse_pairs(items, what: str) -> dict:
     out = {}
     for item in items or []:
         key, sep, value = item.partition("=")
         if not sep or not key or not value:
             raise ValueError(f"{what} must look like NAME=VALUE, got {item!r}")
+        if key in out:
+            raise ValueError(f"{what}: {key!r} is given twice ({key}={out[key]} and {item}); give each NAME once")
         out[key] = value
     return out
 
@@ -211,11 +226,17 @@ def _cmd_check_prior(args) -> int:
 def _cmd_train(args) -> int:
     from benchmark.registry import get_prior_class
 
+    from benchmark.outdir import check_out_dir
+
     cls = get_prior_class(args.name)
     if not hasattr(cls, "train_embedded"):
         raise ValueError(f"prior {args.name!r} has no training recipe (no train_embedded classmethod)")
-    out = Path(args.out) if args.out else None
+    out = Path(args.out) if args.out is not None else None
     from priors.training import WEIGHTS_DIR, training_session
+
+    # the weights folder first: a wrong --out fails in a second, not after hours of training
+    check_out_dir(out if out is not None else WEIGHTS_DIR, min_free_bytes=1 << 20,
+                  what="--out" if out is not None else "the weights folder")
 
     # every loop of the recipe checkpoints here; --resume continues from it (priors/training.py)
     state_dir = (out or WEIGHTS_DIR) / ".train_state" / args.name
@@ -230,18 +251,11 @@ def _cmd_train(args) -> int:
 
 
 def _cmd_export_onnx(args) -> int:
-    from benchmark.export_onnx import ParityError, export_onnx, sidecar_path
+    from benchmark.export_onnx import ParityError, check_export_target, export_onnx, require_onnx_packages, sidecar_path
 
-    from benchmark.export_onnx import require_onnx_packages
-    from benchmark.outdir import check_out_dir
-
-    out = Path(args.out) if args.out else Path("exports") / f"{args.name}.{args.size}.onnx"
+    out = Path(args.out) if args.out is not None else Path("exports") / f"{args.name}.{args.size}.onnx"
+    check_export_target(out, overwrite=args.force, weights=args.weights)  # before anything loads
     require_onnx_packages()
-    if out.suffix != ".onnx":
-        raise ValueError(f"--out {out}: the output must end in .onnx (its record is written beside it as .json)")
-    if out.exists() and not args.force:
-        raise FileExistsError(f"{out} exists: pass --force to overwrite it, or --out FILE to write elsewhere")
-    check_out_dir(out.parent, min_free_bytes=1 << 20, what="the folder of --out")
     adapter = make_adapter(args.name, size=args.size, weights=args.weights, device="cpu")
     try:
         record = export_onnx(adapter, out, opset=args.opset, overwrite=args.force, check=not args.no_check)
@@ -279,6 +293,8 @@ def _cmd_compare(args) -> int:
 def add_run_commands(sub) -> None:
     from benchmark.complete import add_complete_command
 
+    from benchmark import argtypes as at
+
     fmt = argparse.ArgumentDefaultsHelpFormatter
     add_complete_command(sub)
     p = sub.add_parser("run", help="run a table (e.g. table1) for some priors", formatter_class=fmt)
@@ -286,7 +302,7 @@ def add_run_commands(sub) -> None:
     p.add_argument("--prior", action="append", help="prior name (repeatable); default: the table spec's default_priors (python -m benchmark list)")
     p.add_argument("--profile", default=None, help="smoke | quick | full (default: full on CUDA, quick on CPU)")
     p.add_argument("--device", default=None, help="cpu | cuda (default: cuda when available)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=at.seed, default=0)
     p.add_argument("--out", default="runs/latest", help="output directory (unit files, table JSON/MD/CSV/TeX)")
     p.add_argument("--resume", choices=["only-missing", "never"], default="only-missing")
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded", help="prior size; paper needs --weights")
@@ -299,15 +315,15 @@ def add_run_commands(sub) -> None:
     p.add_argument("--backend", choices=["local", "ray"], default="local",
                    help="execution backend: local (this machine, --jobs processes) or ray (a Ray runtime or cluster); "
                         "the backend never changes a number")
-    p.add_argument("--jobs", type=int, default=None,
+    p.add_argument("--jobs", type=at.jobs, default=None,
                    help="local backend: units run in parallel in this many worker processes, one torch thread each "
                         "(default: the CPU cores, 1 on CUDA; 1 runs them in this process)")
     p.add_argument("--ray-address", default=None, metavar="auto|HOST:PORT",
                    help="ray backend: join a running cluster ('auto': the one started on this machine by 'ray start'); "
                         "default: start a local Ray runtime with this machine's cores")
-    p.add_argument("--cpus-per-unit", type=float, default=None,
+    p.add_argument("--cpus-per-unit", type=at.positive_float, default=None,
                    help="ray backend: CPUs each unit reserves, also its torch threads (default 1)")
-    p.add_argument("--gpus-per-unit", type=float, default=None,
+    p.add_argument("--gpus-per-unit", type=at.non_negative_float, default=None,
                    help="ray backend: GPUs each unit reserves, a fraction shares one (default 1 with --device cuda, else 0)")
     p.set_defaults(func=_cmd_run)
 
@@ -327,15 +343,17 @@ def add_run_commands(sub) -> None:
 
     p = sub.add_parser("train", help="train a prior's embedded weights on the synthetic training split", formatter_class=fmt)
     p.add_argument("name")
-    p.add_argument("--steps", type=int, default=None)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=at.positive_int, default=None, help="training steps (default: the recipe's)")
+    p.add_argument("--seed", type=at.seed, default=0)
     p.add_argument("--out", default=None, help="output folder (default: priors/weights)")
     p.add_argument("--force", action="store_true", help="overwrite existing weights")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted training from its last checkpoint (OUT/.train_state/NAME; add --force when "
                         "the weights file exists)")
-    p.add_argument("--checkpoint-every", type=int, default=200, help="save the resumable training state every N steps")
-    p.add_argument("--val-every", type=int, default=500, help="log the validation loss every N steps (0: at the end only)")
+    p.add_argument("--checkpoint-every", type=at.positive_int, default=200,
+                   help="save the resumable training state every N steps")
+    p.add_argument("--val-every", type=at.non_negative_int, default=500,
+                   help="log the validation loss every N steps (0: at the end only)")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("export-onnx", help="export a prior's decoder to ONNX (dynamic batch) and check it with onnxruntime",
@@ -344,7 +362,8 @@ def add_run_commands(sub) -> None:
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded", help="prior size; paper needs --weights")
     p.add_argument("--weights", default=None, help="checkpoint (embedded: default priors/weights; paper: the official one)")
     p.add_argument("--out", default=None, help="output .onnx, record written beside it as .json (default: exports/NAME.SIZE.onnx)")
-    p.add_argument("--opset", type=int, default=17, help="ONNX opset version")
+    p.add_argument("--opset", type=_opset, default=17,
+                   help="ONNX opset version (11 up to the newest this torch exports; some priors need 13)")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file and its record")
     p.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
     p.set_defaults(func=_cmd_export_onnx)

@@ -17,7 +17,12 @@ Writes to OUT (a folder):
 - ``preview.webp``: an animation, when the report renderer (``benchmark.report``) is installed;
 - ``diagnostics.json``: what is printed: the data term's history, convergence, and, where the
   truth is known (a motion input, or a scan folder written by ``data make-scans`` with its
-  ``ground_truth/motion.npz``), MPJPE and root-orientation / facing errors.
+  ``ground_truth/motion.npz``), MPJPE and root-orientation / facing errors;
+- ``.benchmark-output.json``: the marker (:func:`benchmark.outdir.claim_out_dir`): ``--force``
+  replaces only a folder holding it and nothing but the files above.
+
+OUT is checked before anything loads: a writable folder, apart from the input (not the capture
+folder, not inside it, not around it), empty or an earlier ``complete``'s output with ``--force``.
 """
 
 from __future__ import annotations
@@ -36,6 +41,25 @@ import torch
 log = logging.getLogger(__name__)
 
 OUTPUT_FPS = 30.0
+COMMAND = "complete"
+# what complete writes into --out (the marker lists them; --force replaces only these)
+OUTPUT_ENTRIES = ("motion.npz", "meshes", "preview.webp", "preview.gif", "diagnostics.json")
+
+
+def check_complete_args(args) -> tuple[Path, list[str]]:
+    """The checks made before anything loads: the input exists; --out is a writable folder apart from
+    the input (not the capture folder, inside it or around it: its frames would be mixed with the
+    output); a non-empty --out needs --force and must hold only an earlier ``complete``'s output
+    (:func:`benchmark.outdir.claim_out_dir`). Returns (the folder, the earlier output's entries, to
+    be replaced once the fit has succeeded). The numbers are range-checked by the parser."""
+    from benchmark.outdir import check_not_overlapping, claim_out_dir
+
+    path = Path(args.input)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such scan folder or motion file")
+    kind = "input scan folder" if path.is_dir() else "input file"
+    check_not_overlapping(args.out, [(kind, path)])
+    return claim_out_dir(args.out, COMMAND, bool(getattr(args, "force", False)))
 
 
 def _observation_from_motion(motion, body, spec: dict, window: float, points, fps: float, seed: int):
@@ -64,11 +88,11 @@ def _load_input(path: Path, args, body, spec: dict):
         raise FileNotFoundError(f"{path}: no such scan folder or motion file")
     window_spec = float(spec["data"]["window_s"])
     if path.is_dir():
-        seq = ScanSequence(path, up=args.up, units=args.units, fps=args.capture_fps)
+        seq = ScanSequence(path, up=args.up, units=args.units, fps=args.capture_fps, rate_flag="--capture-fps")
         start = args.start
         if not 0 <= start < seq.duration:
             raise ValueError(f"{path}: --start {start} s lies outside the capture ({seq.duration:.3f} s)")
-        window = min(args.window or window_spec, seq.duration - start)
+        window = min(window_spec if args.window is None else args.window, seq.duration - start)
         wspec = copy.deepcopy(spec)
         wspec["data"].update(window_s=window, window_start_s=start)
         source = ScanCompletionData(wspec, body, {path.name: seq}, args.seed)
@@ -76,16 +100,18 @@ def _load_input(path: Path, args, body, spec: dict):
                                       stable_seed("degrade", args.seed, args.points, args.fps, path.name))
         t_start = float(obs.timestamps[0, 0])
         truth_file = path / "ground_truth" / "motion.npz"
-        truth = _shape_for_body(Motion.load(truth_file), body) if truth_file.is_file() else None
+        truth = _shape_for_body(Motion.load(truth_file), body, str(truth_file)) if truth_file.is_file() else None
         what = (f"scan folder {path}: {len(seq.frames)} frames at {seq.capture_fps:.4g} fps; observed "
                 f"{obs.num_frames} frames (largest offset from the nominal instants {1000 * offsets[0]:.1f} ms)")
         return obs, t_start, window, truth, what
     if args.up != "y" or args.units != "m":
         raise ValueError("--up / --units apply to scan folders; motion files are converted by their loaders")
-    motion = _shape_for_body(load_motion(path), body)
+    motion = _shape_for_body(load_motion(path), body, str(path))
+    if not 0 <= args.start < motion.duration:
+        raise ValueError(f"{path}: --start {args.start} s lies outside the motion ({motion.duration:.3f} s)")
     if args.start:
         motion = motion.window(float(motion.timestamps[0]) + args.start, motion.duration - args.start)
-    window = min(args.window or window_spec, motion.duration)
+    window = min(window_spec if args.window is None else args.window, motion.duration)
     obs, t_start = _observation_from_motion(motion, body, spec, window, args.points, args.fps, args.seed)
     what = (f"motion {path} ({motion.num_frames} frames at {motion.fps:.4g} fps), scanned at "
             f"{spec['data']['capture_fps']} fps x {spec['data']['points_per_frame']} points; observed {obs.num_frames} frames")
@@ -155,13 +181,14 @@ def run_complete(args) -> dict:
     from benchmark.synthetic.scan_set import write_ply_mesh
 
     t_begin = time.perf_counter()
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.force:
-        raise FileExistsError(f"{out} exists and is not empty; pass --force to overwrite its files")
+    out, earlier = check_complete_args(args)
     spec = load_table_spec("table1")
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     profile_name = args.profile or ("full" if device.startswith("cuda") else "quick")
     profile = get_profile(profile_name, table="table1")
+    steps = int(profile["steps"] if args.steps is None else args.steps)
+    if steps < 1:
+        raise ValueError(f"--steps {steps}: the fit needs at least 1 step")
     body = get_body(args.body, device=device)
     obs, t_start, window, truth, what = _load_input(Path(args.input), args, body, spec)
     print(what)
@@ -170,7 +197,6 @@ def run_complete(args) -> dict:
     batch = observation_batch(obs, window, out_t[None], device)
     adapter = make_adapter(args.prior, size=args.size, weights=args.weights, device=device)
     obj = spec["objective"]
-    steps = int(args.steps or profile["steps"])
     print(f"fitting {args.prior} ({args.size}) under the table1 rules: {batch.num_observed} observed frames, "
           f"up to {int(batch.lengths.max())} points each, window {window:g} s, profile {profile_name!r} "
           f"({steps} steps, loss vertices {profile.get('loss_vertices', 'all')}), device {device}")
@@ -183,7 +209,12 @@ def run_complete(args) -> dict:
     fit_s = time.perf_counter() - t0
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
 
+    # the fit is done: an earlier complete's files in --out (checked at the start) are replaced now
+    from benchmark.outdir import remove_entries, write_marker
+
     out.mkdir(parents=True, exist_ok=True)
+    remove_entries(out, earlier)
+    write_marker(out, COMMAND, OUTPUT_ENTRIES)
     shape = state.shape()[0].detach().cpu()
     motion = Motion(poses=roma.rotmat_to_rotvec(rot[0].cpu().double()).float(), trans=trans[0].cpu(), timestamps=out_t,
                     shape=shape, body=body.name, source=f"complete:{args.prior}:{args.input}",
@@ -233,21 +264,24 @@ def run_complete(args) -> dict:
 
 
 def add_complete_command(sub) -> None:
+    from benchmark import argtypes as at
+
     p = sub.add_parser("complete", help="fit a prior to one capture (scan folder, .npz motion or BVH) and write the "
                        "completed motion", formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("input", help="scan folder, harness/AMASS .npz, or .bvh")
     p.add_argument("--prior", required=True, help="prior name (python -m benchmark list priors)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--points", type=int, default=None, help="points per observed frame (default: all)")
-    p.add_argument("--fps", type=float, default=10.0, help="observed frames per second")
-    p.add_argument("--window", type=float, default=None, help="seconds to complete (default: table1's 4 s)")
-    p.add_argument("--start", type=float, default=0.0, help="window start, seconds after the first frame")
+    p.add_argument("--points", type=at.points, default=None, help="points per observed frame (default: all)")
+    p.add_argument("--fps", type=at.fps, default=10.0, help="observed frames per second")
+    p.add_argument("--window", type=at.positive_float, default=None,
+                   help="seconds to complete (default: table1's 4 s; shorter if the input is)")
+    p.add_argument("--start", type=at.non_negative_float, default=0.0, help="window start, seconds after the first frame")
     p.add_argument("--meshes", action="store_true", help="write one PLY mesh per output frame")
     p.add_argument("--no-preview", action="store_true", help="skip the animated preview")
     p.add_argument("--profile", default=None, help="steps and loss vertices from this profile (default: quick on CPU)")
-    p.add_argument("--steps", type=int, default=None, help="override the profile's steps")
+    p.add_argument("--steps", type=at.positive_int, default=None, help="override the profile's steps")
     p.add_argument("--device", default=None)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=at.seed, default=0)
     p.add_argument("--facing", choices=["observation", "search", "heading8"], default="observation",
                    help="how the fit finds the facing direction: 'observation' (table1 protocol v2) finds it on the "
                         "observation with the prior-free coarse search and turns the prior's start to it; 'search' runs "
@@ -257,6 +291,7 @@ def add_complete_command(sub) -> None:
     p.add_argument("--body", default="anny")
     p.add_argument("--up", choices=["y", "z"], default="y", help="scan folders: up axis")
     p.add_argument("--units", choices=["m", "cm", "mm"], default="m", help="scan folders: units")
-    p.add_argument("--capture-fps", type=float, default=None, help="scan folders without timestamps: their rate")
-    p.add_argument("--force", action="store_true", help="write into a non-empty --out")
+    p.add_argument("--capture-fps", type=at.fps, default=None, help="scan folders without timestamps: their rate")
+    p.add_argument("--force", action="store_true",
+                   help="replace the output of an earlier complete in --out (a folder holding anything else is refused)")
     p.set_defaults(func=lambda args: 0 if run_complete(args) else 1)

@@ -30,6 +30,25 @@ log = logging.getLogger(__name__)
 
 DEFAULT_OPSET = 17
 EXPORTER = "torch.onnx.export (TorchScript-based, dynamo=False)"
+# The lowest opset a decoder exports at with its dynamic batch dimension: below 11 the traced
+# reshapes lose a dimension (vposer-slerp at 9 and 10: "'rotations' has rank 3 in the graph") or
+# the exporter stops on an AssertionError after dumping the graph (7). Priors that need more (those
+# using aten::unflatten: 13) get torch's own UnsupportedOperatorError, which names the opset to use.
+MIN_DYNAMIC_BATCH_OPSET = 11
+_FALLBACK_MAX_OPSET = 20  # when torch does not say (torch 2.x: 20 to 23)
+
+
+def supported_opsets() -> tuple[int, int]:
+    """(lowest, highest) ``opset_version`` :func:`export_onnx` takes: from the exporter's own range
+    (``torch.onnx._constants``: 7..23 for torch 2.13; 24 is refused by torch), raised to
+    :data:`MIN_DYNAMIC_BATCH_OPSET`. ``--opset`` is checked against it when the command line is parsed."""
+    try:
+        from torch.onnx import _constants as c
+
+        lo, hi = int(c.ONNX_MIN_OPSET), int(c.ONNX_MAX_OPSET)
+    except (ImportError, AttributeError, TypeError, ValueError):
+        lo, hi = MIN_DYNAMIC_BATCH_OPSET, _FALLBACK_MAX_OPSET
+    return max(lo, MIN_DYNAMIC_BATCH_OPSET), hi
 
 
 class NotExportableError(ValueError):
@@ -253,6 +272,48 @@ class MissingPackageError(ImportError):
     """A package export-onnx needs is not installed (the message says how to install it)."""
 
 
+def _is_export_record(path: Path) -> bool:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and "onnx_sha256" in data and data.get("exporter") is not None
+
+
+def check_export_target(path: str | Path, overwrite: bool = False, weights: str | Path | None = None) -> Path:
+    """Before anything loads: ``path`` ends in .onnx, is not a folder, its folder is writable; it and
+    its record (:func:`sidecar_path`) are not the ``weights`` read; without ``overwrite`` neither
+    exists; with it, what is replaced was written by an export (an existing record must be an
+    export record, and an existing .onnx must have one): a training record ``NAME.json`` beside
+    ``NAME.pt`` is never overwritten. Returns the path."""
+    from benchmark.outdir import OutDirError, check_out_dir
+
+    path = Path(path)
+    if path.suffix != ".onnx":
+        raise ValueError(f"--out {path}: the output must end in .onnx (its record is written beside it as .json)")
+    if path.is_dir():
+        raise ValueError(f"--out {path}: is a folder; give the output file, e.g. {path / 'decoder.onnx'}")
+    record = sidecar_path(path)
+    if weights is not None:
+        w = Path(weights).expanduser().resolve()
+        for p in (path, record):
+            if p.expanduser().resolve() == w:
+                raise OutDirError(f"--out {path}: would overwrite the --weights file {weights} it reads; choose another --out")
+    if not overwrite:
+        for p in (path, record):
+            if p.exists():
+                raise FileExistsError(f"{p} exists: pass --force to overwrite it, or --out FILE to write elsewhere")
+    else:
+        if record.exists() and not _is_export_record(record):
+            raise OutDirError(f"--out {path}: {record}, where the export's record goes, exists and was not written by "
+                              "export-onnx (a training record?); --force does not replace it: choose another --out")
+        if path.exists() and not record.exists():
+            raise OutDirError(f"--out {path}: exists without the record {record.name} an export writes beside it, so it "
+                              "was not written by export-onnx; --force does not replace it: choose another --out")
+    check_out_dir(path.parent if str(path.parent) else Path("."), min_free_bytes=1 << 20, what="the folder of --out")
+    return path
+
+
 def require_onnx_packages() -> None:
     """Raise :class:`MissingPackageError` naming each missing package and the install command.
     ``onnx`` and ``onnxruntime`` are normal dependencies (``pip install -e .`` brings them); an
@@ -296,20 +357,12 @@ def export_onnx(
 
     from benchmark.provenance import git_info
 
-    path = Path(path)
-    if path.suffix != ".onnx":
-        raise ValueError(f"ONNX output file must end in .onnx (its record is written beside it as .json), got {path}")
-    if path.is_dir():
-        raise ValueError(f"--out {path}: is a folder; give the output file, e.g. {path / 'decoder.onnx'}")
-    from benchmark.outdir import check_out_dir
-
-    check_out_dir(path.parent, min_free_bytes=1 << 20, what="the folder of --out")
+    lo, hi = supported_opsets()
+    if not lo <= int(opset) <= hi:
+        raise ValueError(f"--opset {opset}: out of range; this torch exports opsets {lo}..{hi}")
+    path = check_export_target(path, overwrite, getattr(adapter, "weights_path", None))
     record_path = sidecar_path(path)
     spec = get_spec(adapter)
-    if not overwrite:
-        for p in (path, record_path):
-            if p.exists():
-                raise FileExistsError(f"{p} exists: pass --force (overwrite=True) to overwrite it, or --out FILE to write elsewhere")
 
     path.parent.mkdir(parents=True, exist_ok=True)
     names = list(spec.input_names) + list(spec.output_names)

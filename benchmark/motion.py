@@ -17,6 +17,10 @@ File format (``Motion.save`` / ``Motion.load``), all arrays plain (no pickle):
     meta        ()         unicode   optional JSON object (provenance: corrections, units, ...)
 
 A hand-written file may omit ``timestamps`` if it gives ``fps`` (frames at k / fps).
+
+``Motion.load`` also refuses implausible content (:mod:`benchmark.plausibility`): fewer than 2
+frames, timestamps whose rate is outside 1-1,000 fps or whose span exceeds an hour (milliseconds),
+a translation beyond 1 km (millimetres, a scale error); it warns on unusual but usable content.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ import numpy as np
 import torch
 
 from benchmark.body.lbs import forward_kinematics
+from benchmark.plausibility import check_motion
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle, slerp_matrices
 from benchmark.skeleton import NUM_JOINTS
 
@@ -299,6 +304,7 @@ class Motion:
                     f"{where}: field 'fps' = {file_fps} disagrees with the timestamps "
                     f"(1 / median dt = {motion.fps:.6g}); fix or drop one of them"
                 )
+        check_motion(motion, where, time_field="timestamps" if "timestamps" in data else "fps")
         return motion
 
 

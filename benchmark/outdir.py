@@ -10,6 +10,13 @@ host and the start time of the run that owns the folder. A second run into the s
 refused with a message naming that process. A lock left by a process that no longer exists on this
 host (a run killed with SIGKILL, a crashed node) is stale: it is taken over, with a warning. A lock
 from another host cannot be checked and is refused; the message says how to remove it.
+
+Every command that writes checks its output the same way before any work. Besides:
+:func:`check_not_overlapping` refuses an output equal to, inside or containing an input;
+:func:`claim_out_dir` is for commands that replace a whole folder with ``--force`` (``data
+make-scans``, ``complete``): they write a marker (:data:`MARKER_NAME`, the command and the entries it
+wrote) into the folder, and ``--force`` replaces only a folder holding that command's marker and
+nothing else, and only after every argument has been checked.
 """
 
 from __future__ import annotations
@@ -32,7 +39,8 @@ MIN_FREE_BYTES = 16 * 1024 * 1024
 
 
 class OutDirError(ValueError):
-    """``--out`` cannot be used (not a folder, not writable, full, locked by another run)."""
+    """``--out`` cannot be used (not a folder, not writable, full, locked by another run, the input
+    itself, or holding files the command did not write)."""
 
 
 def _existing_ancestor(path: Path) -> Path:
@@ -181,3 +189,115 @@ class OutDirLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+# ------------------------------------------------------------------------------------------------
+# inputs and outputs apart; what --force may replace
+
+MARKER_NAME = ".benchmark-output.json"
+
+
+def check_not_overlapping(out: str | os.PathLike, inputs, what: str = "--out", allow_inside: bool = False) -> None:
+    """Refuse an output path that is one of ``inputs`` (``(label, path)`` pairs), lies inside one or
+    contains one (paths resolved, so ``./x``, ``x/../x`` and symlinks compare equal): writing there
+    would change the input. ``allow_inside``: an output folder below the input is fine (``report``'s
+    default ``RUN/report``). Raises :class:`OutDirError` naming both paths and the fix."""
+    o = Path(out).expanduser().resolve()
+    for label, inp in inputs:
+        if inp is None:
+            continue
+        i = Path(inp).expanduser().resolve()
+        if o == i:
+            how = f"is the {label} itself"
+        elif i in o.parents and not allow_inside:
+            how = f"lies inside the {label} {inp}"
+        elif o in i.parents:
+            how = f"contains the {label} {inp}"
+        else:
+            continue
+        raise OutDirError(f"{what} {out}: {how}; writing there would change the input. Choose an output "
+                          f"path outside it")
+
+
+def _marker_path(folder: Path) -> Path:
+    return folder / MARKER_NAME
+
+
+def read_marker(folder: str | os.PathLike) -> dict | None:
+    """The marker an output folder's command wrote (``{"command": ..., "entries": [...]}``), or None."""
+    path = _marker_path(Path(folder))
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or not isinstance(data.get("entries"), list):
+        return None
+    return data
+
+
+def claim_out_dir(out: str | os.PathLike, command: str, force: bool, what: str = "--out",
+                  min_free_bytes: int = MIN_FREE_BYTES) -> tuple[Path, list[str]]:
+    """Before any work, for a command that writes a folder of its own (``data make-scans``,
+    ``complete``): :func:`check_out_dir`, then who wrote what is in it.
+
+    An empty or new folder is fine. A non-empty one is refused without ``force``; with ``force`` it
+    must hold the marker (:data:`MARKER_NAME`) that ``command`` wrote when it made the folder and
+    nothing besides the entries the marker lists (and the marker, a run lock). Nothing is deleted
+    here. Returns (the folder, the entries of the earlier output that the command may replace, after
+    checking the rest of its arguments, with :func:`remove_entries`)."""
+    path = Path(out).expanduser()
+    had = sorted(p.name for p in path.iterdir()) if path.is_dir() else []
+    check_out_dir(path, min_free_bytes=min_free_bytes, what=what)
+    if not had:
+        return path, []
+    shown = f"`python -m benchmark {command}`"
+    if not force:
+        raise FileExistsError(f"{what} {path} exists and is not empty; pass --force to replace what an earlier "
+                              f"{shown} wrote there, or choose another {what}")
+    marker = read_marker(path)
+    if marker is None or marker.get("command") != command:
+        whose = "no marker" if marker is None else f"its marker says {marker.get('command')!r}"
+        raise OutDirError(f"{what} {path}: not a folder {shown} wrote ({whose} {MARKER_NAME}); --force only "
+                          f"replaces that command's own output, so nothing was deleted. Choose another {what}, or "
+                          "empty the folder yourself")
+    owned = {str(e) for e in marker["entries"]}
+    foreign = [n for n in had if n not in owned and n not in (MARKER_NAME, LOCK_NAME)]
+    if foreign:
+        more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+        raise OutDirError(f"{what} {path}: holds files {shown} did not write ({', '.join(foreign[:3])}{more}); "
+                          f"--force does not delete them, so nothing was deleted. Move them away or choose another {what}")
+    return path, [n for n in had if n in owned]
+
+
+def _plain_name(name: str) -> bool:
+    return bool(name) and name not in (".", "..") and "/" not in name and "\\" not in name and name != MARKER_NAME
+
+
+def write_marker(folder: str | os.PathLike, command: str, entries) -> Path:
+    """Record in ``folder`` that ``command`` wrote it and which top-level ``entries`` are its own
+    (written atomically; entries it adds later are recorded by calling this again)."""
+    folder = Path(folder)
+    names = sorted({str(e) for e in entries})
+    bad = [n for n in names if not _plain_name(n)]
+    if bad:
+        raise ValueError(f"marker entries must be plain names in the folder, got {bad}")
+    data = {"command": command, "entries": names,
+            "note": f"written by python -m benchmark {command}; --force replaces only these entries"}
+    tmp = folder / f".{MARKER_NAME}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, _marker_path(folder))
+    return _marker_path(folder)
+
+
+def remove_entries(folder: str | os.PathLike, entries) -> None:
+    """Delete the top-level ``entries`` of ``folder`` (a command's earlier output, from
+    :func:`claim_out_dir`); a name that is not a plain entry of the folder is skipped."""
+    folder = Path(folder)
+    for name in entries:
+        if not _plain_name(str(name)):
+            continue
+        p = folder / str(name)
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        elif p.exists() or p.is_symlink():
+            p.unlink()

@@ -416,9 +416,43 @@ def format_report(r: dict) -> str:
     return "\n".join(lines)
 
 
+def check_perf_out(out: str | Path) -> Path:
+    """Before any measurement: ``out`` is a writable folder (:func:`benchmark.outdir.check_out_dir`)
+    and the ``perf.md`` / ``perf.json`` already in it, which the run replaces, were written by perf
+    (a file of the same name written by someone else is refused, never overwritten)."""
+    from benchmark.outdir import OutDirError, check_out_dir
+
+    folder = check_out_dir(out, min_free_bytes=1 << 20)
+    for name, ours in (("perf.json", _is_perf_json), ("perf.md", _is_perf_md)):
+        path = folder / name
+        if (path.exists() or path.is_symlink()) and not ours(path):
+            raise OutDirError(f"--out {folder}: {path} was not written by `python -m benchmark perf`, which would replace "
+                              "it; move it away or choose another --out")
+    return folder
+
+
+def _is_perf_json(path: Path) -> bool:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return path.is_file() and not path.is_symlink() and isinstance(data, dict) and isinstance(data.get("machine"), dict)
+
+
+def _is_perf_md(path: Path) -> bool:
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            head = fh.read(64)
+    except OSError:
+        return False
+    return path.is_file() and not path.is_symlink() and head.startswith("# benchmark perf (")
+
+
 def run_perf(device: str = "cpu", quick: bool = True, out: str | Path = "perf", parts=None) -> dict:
     """Run every comparison (or ``parts``, a subset of chamfer, surface, evaluation, skinning, adam,
-    cuda), print the table, write ``perf.md`` and ``perf.json`` to ``out``; return the figures."""
+    cuda), print the table, write ``perf.md`` and ``perf.json`` to ``out``; return the figures.
+    ``out`` is checked first (:func:`check_perf_out`)."""
+    out = check_perf_out(out)
     parts = set(parts or ("chamfer", "surface", "evaluation", "skinning", "adam", "cuda"))
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -445,7 +479,6 @@ def run_perf(device: str = "cpu", quick: bool = True, out: str | Path = "perf", 
         torch.set_num_threads(threads)
     text = format_report(report)
     print(text)
-    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "perf.md").write_text(text + "\n")
     (out / "perf.json").write_text(json.dumps(report, indent=1) + "\n")

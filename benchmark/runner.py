@@ -239,6 +239,12 @@ def run_units(
 
     try:
         run_backend(todo, execute, on_done)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: what finished is stored; say so, and how to go on
+        from benchmark.interrupts import add_stop_note
+
+        add_stop_note(exc, f"{len(report.reused) + len(report.ran)} of {len(units)} work unit(s) stored in "
+                           f"{Path(out_dir) / 'units'}; the same command resumes from them")
+        raise
     finally:
         bar.close()
     report.results = {uid: done[uid] for uid in ids if uid in done}

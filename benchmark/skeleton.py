@@ -1,4 +1,4 @@
-"""The SMPL 22-joint body and the 16 MoCap-style landmarks (PROTOCOL.md, conventions)."""
+"""The SMPL 22-joint body and the 16 MoCap-style landmarks (docs/protocol.md, conventions)."""
 
 JOINT_NAMES = (
     "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee",

@@ -82,12 +82,36 @@ def _loss(values) -> str:
     return f"{values['loss']:.4g}" if isinstance(values, dict) and isinstance(values.get("loss"), (int, float)) else "–"
 
 
+TITLE = "<title>Training report</title>"
+OUTPUT_ENTRIES = ("index.html", "img")  # what the report writes into --out
+
+
+def check_train_report_out(out: str | Path, weights_dir: str | Path) -> Path:
+    """Before any plot: --out is a writable folder, not the weights folder nor around it, holding
+    nothing but an earlier training report (its index.html and img/, which are replaced)."""
+    from benchmark.outdir import OutDirError, check_not_overlapping, check_out_dir
+
+    out = Path(out)
+    check_not_overlapping(out, [("--weights-dir", weights_dir)], allow_inside=True)
+    if out.is_dir():
+        entries = sorted(p.name for p in out.iterdir())
+        index = out / "index.html"
+        ours = index.is_file() and TITLE in index.read_text(encoding="utf-8", errors="replace")[:500]
+        foreign = [n for n in entries if n not in OUTPUT_ENTRIES]
+        if entries and (not ours or foreign):
+            shown = f" ({', '.join(foreign[:3])})" if foreign else ""
+            raise OutDirError(f"--out {out}: holds files train-report did not write{shown}; it replaces its folder's "
+                              "index.html and img/, so nothing was written: choose an empty or new --out")
+    return check_out_dir(out, min_free_bytes=1 << 20)
+
+
 def build_train_report(weights_dir: str | Path = WEIGHTS_DIR, out: str | Path = "runs/train-report") -> Path:
     weights_dir, out = Path(weights_dir), Path(out)
     records = sorted(weights_dir.glob("*.json"))
     if not records:
         raise FileNotFoundError(f"{weights_dir}: no training record (NAME.json) found; train a prior with "
                                 "`python -m benchmark train NAME` or point --weights-dir at the folder of its weights")
+    out = check_train_report_out(out, weights_dir)
     (out / "img").mkdir(parents=True, exist_ok=True)
     rows, figures = [], []
     for path in records:
@@ -118,7 +142,7 @@ def build_train_report(weights_dir: str | Path = WEIGHTS_DIR, out: str | Path = 
     table = "<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>" + "".join(
         "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows) + "</table>"
     imgs = "".join(f'<h2>{html.escape(n)}</h2><img src="{src}" alt="{html.escape(n)} training curves">' for n, src in figures)
-    page = (f"<!doctype html><meta charset='utf-8'><title>Training report</title><h1>Training report: {html.escape(str(weights_dir))}</h1>"
+    page = (f"<!doctype html><meta charset='utf-8'>{TITLE}<h1>Training report: {html.escape(str(weights_dir))}</h1>"
             "<p>Loss parts against the step: training (solid, mean over each logging interval), validation (dashed), "
             "the final validation value (star).</p>" + table + imgs)
     (out / "index.html").write_text(page)

@@ -195,8 +195,9 @@ class PriorAdapter(torch.nn.Module):
         where the initialisation is already deterministic (an encoder's output, a rest pose).
 
         table1 protocol v3 (``objective.latent_init: mean``) starts such priors here: a deterministic
-        start, as ``no-prior``'s T-pose is, instead of one random draw (PROTOCOL.md's "a random
-        sample from the prior"), whose luck the tables would otherwise measure.
+        start, as ``no-prior``'s T-pose is, instead of one random draw (the paper's "a random
+        sample from the prior"; docs/protocol.md, table1 version 3), whose luck the tables would
+        otherwise measure.
         """
         return None
 

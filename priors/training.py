@@ -29,6 +29,7 @@ from typing import Callable
 
 import torch
 
+from benchmark.safe_loading import UnsafeFileError, torch_load_weights
 from benchmark.skeleton import NUM_JOINTS
 
 log = logging.getLogger(__name__)
@@ -271,11 +272,17 @@ def _save_state(path: Path, state: dict) -> None:
 
 
 def _load_state(path: Path, steps: int, seed: int, n: int) -> dict:
+    fix = "delete it to train from the start, or rerun without --resume"
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        # plain tensors, numbers, lists and dicts (optimiser and schedule state dicts included):
+        # weights_only=True reads all of it, and a file holding anything else is refused
+        state = torch_load_weights(path, fix)
+    except UnsafeFileError:
+        raise
     except Exception as exc:
-        raise ValueError(f"{path}: unreadable training state ({type(exc).__name__}: {exc}); delete it to train "
-                         "from the start, or rerun without --resume") from None
+        raise ValueError(f"{path}: unreadable training state ({type(exc).__name__}: {exc}); {fix}") from None
+    if not isinstance(state, dict):
+        raise ValueError(f"{path}: not a training state (a {type(state).__name__}, expected a dict); {fix}")
     mine = {"steps": steps, "seed": seed, "samples": n}
     theirs = {k: state.get(k) for k in mine}
     if theirs != mine:
@@ -419,15 +426,18 @@ def embedded_out_dir(out_dir: str | Path | None, default_weights: Path, overwrit
     return out
 
 
-def recipe_parser(description: str, default_weights: Path, steps: int):
+def recipe_parser(description: str, default_weights: Path, steps: int, min_steps: int = 1):
     """The command line every ``python -m priors.<name>.train`` shares: ``--out`` (default: the folder of
-    ``default_weights``), ``--steps``, ``--seed``, ``--force``; a recipe adds its own options to it."""
+    ``default_weights``), ``--steps`` (at least ``min_steps``), ``--seed``, ``--force``; a recipe adds
+    its own options to it (numbers range-checked with :mod:`benchmark.argtypes`)."""
     import argparse
+
+    from benchmark import argtypes as at
 
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--out", default=str(default_weights.parent), help="output folder (default: %(default)s)")
-    ap.add_argument("--steps", type=int, default=steps, help="training steps (default: %(default)s)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--steps", type=at.Number(int, min_steps), default=steps, help="training steps (default: %(default)s)")
+    ap.add_argument("--seed", type=at.seed, default=0)
     ap.add_argument("--force", action="store_true", help="overwrite existing weights")
     return ap
 

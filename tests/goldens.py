@@ -35,8 +35,8 @@ NOT_COMPARED = {"s_per_frame"}
 # the residual clean encoder (issue 13; it encodes the observed frames) the 5-frame gap moves too: up
 # to 3.5 mm MPJPE and 3.3 mm PA-MPJPE over two seeds, the longer gaps up to 1.0 mm.
 # The embedded Motion-DVAE's table1 fits (smoke, all six cells, the clean encoder with the residual
-# input of issue 13) are chaotic too: its start is far outside the prior's training data (README,
-# table1 paragraph), and uniform noise of +-3e-8 m on Anny's blendshapes and template (three seeds,
+# input of issue 13) are chaotic too: its start is far outside the prior's training data (docs/table1.md,
+# the motion-dvae row), and uniform noise of +-3e-8 m on Anny's blendshapes and template (three seeds,
 # `run_table` on the smoke profile against this golden) moved a cell's MPJPE by up to 141.7 mm and
 # its Chamfer by up to 33.1 mm; one and two torch threads gave the same numbers. Its tolerances cover
 # that spread with a margin: they catch a row that breaks by metres, not a change of centimetres; the

@@ -530,6 +530,490 @@ def _(tmp, mp):
 
 
 # ------------------------------------------------------------------------------------------------
+# files that must never run code when opened (checkpoints, SMPL .pkl, resume state)
+# (section: security)
+class _EvilPayload:
+    """Unpickling it would create ``marker`` (os.system, pickled as ``posix.system``)."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+def evil_torch_file(path: Path) -> Path:
+    """Weights-looking torch checkpoint with a payload; the marker it would create is ``PWNED`` beside it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"state_dict": {"w": torch.zeros(2)}, "epoch": _EvilPayload(path.parent / "PWNED")}, path)
+    return path
+
+
+@case("EVIL vposer --weights (pickled os.system)", "describe", "EVIL.ckpt", "will not unpickle", "posix.system",
+      "fix:", "state_dict")
+def _(tmp, mp):
+    return ["describe", "vposer-slerp", "--size", "paper", "--weights", str(evil_torch_file(tmp / "EVIL.ckpt"))]
+
+
+@case("EVIL frequency-guided weights pair (pickled os.system)", "describe", "EVIL.pth", "will not unpickle",
+      "posix.system", "torch.save(model.state_dict()")
+def _(tmp, mp):
+    pair = f"{evil_torch_file(tmp / 'EVIL.pth')},{evil_torch_file(tmp / 'EVIL.pt')}"
+    return ["describe", "frequency-guided", "--size", "paper", "--weights", pair]
+
+
+@case("EVIL smpl .pkl (pickled os.system)", "describe (licensed body)", "EVIL.pkl", "will not unpickle",
+      "posix.system", ".npz")
+def _(tmp, mp):
+    import pickle
+
+    (tmp / "EVIL.pkl").write_bytes(pickle.dumps({"v_template": np.zeros((4, 3)), "f": _EvilPayload(tmp / "PWNED")},
+                                                protocol=2))
+    return ["describe", "no-prior", "--body", f"smpl={tmp / 'EVIL.pkl'}"]
+
+
+@case("truncated Anny cache file", "Anny body (library)", "Anny's model cache file", ".safetensors",
+      "Error while deserializing header", "rm ", "rebuilds")
+def _(tmp, mp):
+    import anny.paths
+
+    from benchmark.body.anny_body import _make_anny, load_anny_body
+
+    real = Path(anny.paths.get_anny_cache_path())
+    if not list(real.glob("v*/*.safetensors")):
+        load_anny_body("cpu")  # a fresh machine: build the real cache once (~1 min), to copy its file names
+    for f in sorted(real.glob("v*/*.safetensors")):  # the same names, cut to 4 kB (an interrupted first build)
+        dst = tmp / "anny_cache" / f.parent.name / f.name
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        with open(f, "rb") as src:
+            dst.write_bytes(src.read(4096))
+    mp.setattr(anny.paths, "_ANNY_CACHE_DIR", [tmp / "anny_cache"])  # what get_anny_cache_path() returns
+    return _make_anny
+
+# (end of section: security)
+
+
+# ------------------------------------------------------------------------------------------------
+# implausible motions, scans and shapes: refused or warned before any unit starts
+# (section: plausibility)
+# Implausible data (issue 33): millisecond timestamps, translations x 1e6, a shape vector of another
+# length, bad scan frames, binary or one-frame BVH. Each is refused while the data loads: the CLI
+# cases below make planning or running a work unit an error of its own (_pl_no_units), so a case
+# that reached the units would fail on its message.
+
+
+def _pl_no_units(mp):
+    def started(*args, **kwargs):
+        raise AssertionError("a work unit was planned or run: the bad input was not refused while loading")
+
+    mp.setattr("benchmark.results.plan_units", started)
+    mp.setattr("benchmark.runner.run_units", started)
+
+
+def _pl_motion_folder(tmp: Path, n: int = 121, ms: bool = False, trans_scale: float = 1.0, shape=None,
+                      body=None) -> Path:
+    """``tmp/data/a.npz``: a 4 s, 30 fps harness motion walking 2 m (the Motion constructor checks
+    no plausibility: only loaders do)."""
+    from benchmark.motion import Motion
+
+    ts = torch.arange(n, dtype=torch.float64) / 30 * (1000.0 if ms else 1.0)
+    trans = torch.stack([torch.linspace(0, 2, n), torch.full((n,), 0.9), torch.zeros(n)], 1) * trans_scale
+    g = torch.Generator().manual_seed(0)
+    Motion(poses=torch.randn(n, 22, 3, generator=g) * 0.1, trans=trans, timestamps=ts, shape=shape, body=body,
+           source="test", meta={"subject": "s"}).save(tmp / "data" / "a.npz")
+    return tmp / "data"
+
+
+def _pl_run_motions(tmp, mp, folder: Path) -> list:
+    _pl_no_units(mp)
+    return ["run", "inbetween", "--prior", "no-prior", "--data", str(folder), "--out", str(tmp / "o")]
+
+
+def _pl_person(n: int = 300, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).uniform([-0.22, 0.0, -0.125], [0.22, 1.7, 0.125], size=(n, 3))
+
+
+def _pl_scan_root(tmp: Path, bad=None, timestamps=None, frames: int = 10) -> Path:
+    """``tmp/scans/walk_01``: PLY point clouds of a person at 50 fps, with timestamps.txt
+    (``timestamps=False``: none); ``bad(path)`` rewrites frame 5 (a later frame: not the first one)."""
+    import trimesh
+
+    folder = tmp / "scans" / "walk_01"
+    folder.mkdir(parents=True)
+    for i in range(frames):
+        trimesh.PointCloud(_pl_person(seed=i)).export(folder / f"frame_{i:04d}.ply")
+    if timestamps is not False:
+        ts = np.arange(frames) / 50.0 if timestamps is None else timestamps
+        (folder / "timestamps.txt").write_text("\n".join(f"{t:.6f}" for t in ts) + "\n")
+    if bad is not None:
+        bad(folder / "frame_0005.ply")
+    return tmp / "scans"
+
+
+def _pl_run_scans(tmp, mp, root: Path) -> list:
+    _pl_no_units(mp)
+    return ["run", "table1", "--prior", "no-prior", "--data", f"scans={root}", "--out", str(tmp / "o")]
+
+
+@case("--data motion with millisecond timestamps", "run", "a.npz", "field 'timestamps'", "0.03 fps", "milliseconds",
+      "divide them by 1000")
+def _(tmp, mp):
+    return _pl_run_motions(tmp, mp, _pl_motion_folder(tmp, ms=True))
+
+
+@case("--data motion with translations x 1e6", "run", "a.npz", "field 'trans'", "refuses more than 1,000 m",
+      "1e+06 times too large")
+def _(tmp, mp):
+    return _pl_run_motions(tmp, mp, _pl_motion_folder(tmp, trans_scale=1e6))
+
+
+@case("--data motion with a 300-value shape", "run", "a.npz", "field 'shape' has 300 values", "body 'anny' takes 6",
+      "drop the field 'shape'")
+def _(tmp, mp):
+    return _pl_run_motions(tmp, mp, _pl_motion_folder(tmp, shape=torch.rand(300), body="anny"))
+
+
+@case("convert: 300-value shape for --body anny", "data convert", "a.npz", "field 'shape' has 300 values",
+      "body 'anny' takes 6")
+def _(tmp, mp):
+    folder = _pl_motion_folder(tmp, shape=torch.rand(300), body="anny")
+    return ["data", "convert", str(folder / "a.npz"), "--out", str(tmp / "o.npz"), "--body", "anny"]
+
+
+@case("scans: an empty PLY frame", "run", "frame_0005.ply", "the file is empty")
+def _(tmp, mp):
+    return _pl_run_scans(tmp, mp, _pl_scan_root(tmp, bad=lambda p: p.write_bytes(b"")))
+
+
+@case("scans: a garbage PLY frame", "run", "frame_0005.ply", "unreadable PLY file", "re-export")
+def _(tmp, mp):
+    return _pl_run_scans(tmp, mp, _pl_scan_root(tmp, bad=lambda p: p.write_text("not a ply at all\n")))
+
+
+@case("scans: a truncated PLY frame", "run", "frame_0005.ply", "unreadable PLY file", "re-export")
+def _(tmp, mp):
+    return _pl_run_scans(tmp, mp, _pl_scan_root(tmp, bad=lambda p: p.write_bytes(p.read_bytes()[:500])))
+
+
+@case("scans: a NaN point in a frame", "run", "frame_0005.ply", "NaN")
+def _(tmp, mp):
+    import trimesh
+
+    def nan_point(path):
+        points = _pl_person()
+        points[7, 1] = np.nan
+        trimesh.PointCloud(points).export(path)
+
+    return _pl_run_scans(tmp, mp, _pl_scan_root(tmp, bad=nan_point))
+
+
+@case("scans: a 1-point frame", "run", "frame_0005.ply", "1 point(s)", "at least 3")
+def _(tmp, mp):
+    import trimesh
+
+    return _pl_run_scans(tmp, mp, _pl_scan_root(tmp, bad=lambda p: trimesh.PointCloud(_pl_person(1)).export(p)))
+
+
+@case("scans: millisecond timestamps", "run", "timestamps.txt", "0.05 fps", "milliseconds", "divide them by 1000")
+def _(tmp, mp):
+    return _pl_run_scans(tmp, mp, _pl_scan_root(tmp, timestamps=np.arange(10) * 20.0))
+
+
+@case("scans: no timestamps (run)", "run", "no timestamps", "walk_01/timestamps.txt", "0.00, 0.02, 0.04")
+def _(tmp, mp):
+    return _pl_run_scans(tmp, mp, _pl_scan_root(tmp, timestamps=False))
+
+
+@case("complete: scan folder without timestamps", "complete", "no timestamps", "timestamps.txt", "--capture-fps 50")
+def _(tmp, mp):
+    root = _pl_scan_root(tmp, timestamps=False)
+    return ["complete", str(root / "walk_01"), "--prior", "no-prior", "--out", str(tmp / "c")]
+
+
+@case("complete: a truncated PLY frame", "complete", "frame_0005.ply", "unreadable PLY file")
+def _(tmp, mp):
+    def fit(*args, **kwargs):
+        raise AssertionError("the fit started: the bad frame was not refused while loading")
+
+    mp.setattr("benchmark.protocols.completion.fit", fit)
+    root = _pl_scan_root(tmp, bad=lambda p: p.write_bytes(p.read_bytes()[:500]))
+    return ["complete", str(root / "walk_01"), "--prior", "no-prior", "--out", str(tmp / "c")]
+
+
+@case("convert: a BVH of binary bytes", "data convert", "x.bvh", "a binary file, not a BVH")
+def _(tmp, mp):
+    (tmp / "x.bvh").write_bytes(bytes(range(256)) * 8)
+    return ["data", "convert", str(tmp / "x.bvh"), "--out", str(tmp / "o.npz")]
+
+
+@case("convert: a 1-frame BVH", "data convert", "one.bvh", "'Frames: 1'", "repeat its first frame line",
+      "add 1 to 'Frames:'")
+def _(tmp, mp):
+    from benchmark.loaders.bvh_format import cmu_skeleton, write_bvh
+
+    write_bvh(tmp / "one.bvh", cmu_skeleton(), np.tile(np.eye(3), (1, 31, 1, 1)), np.array([[0.0, 17.0, 0.0]]), 1 / 120)
+    return ["data", "convert", str(tmp / "one.bvh"), "--out", str(tmp / "o.npz")]
+
+
+def test_missing_scan_timestamps_name_no_flag_that_run_lacks(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    rc, message = run_case(next(c for c in CASES if c.name == "scans: no timestamps (run)"), tmp_path, monkeypatch)
+    assert rc == 2 and "--fps" not in message and "--capture-fps" not in message, message
+
+
+def test_a_refused_scan_folder_leaves_no_table_and_no_unit(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    rc, message = run_case(next(c for c in CASES if c.name == "scans: a NaN point in a frame"), tmp_path, monkeypatch)
+    assert rc == 2, message
+    out = tmp_path / "o"
+    written = [p.name for p in out.rglob("*") if p.is_file()] if out.exists() else []
+    assert not [n for n in written if n.endswith((".json", ".md", ".csv", ".tex"))], written
+
+# (end of section: plausibility)
+
+
+# ------------------------------------------------------------------------------------------------
+# numeric options, --out and what a command may delete or overwrite
+# (section: options)
+# Numeric options are range-checked when the command line is parsed (benchmark/argtypes.py): an
+# argparse usage error naming the option, the value and the range, before anything loads. --out is
+# checked before any work; --force replaces only what the command wrote itself; an output never
+# goes into (or around) its input.
+
+
+def _op_denied(mp):
+    """A read-only --out (as root chmod cannot make one): the write probe is refused."""
+    def denied(*a, **k):
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    mp.setattr("benchmark.outdir.tempfile.mkstemp", denied)
+
+
+def _op_no_work(mp):
+    """Loading a body or fitting would be work done before the check: an error of its own."""
+    def started(*a, **k):
+        raise AssertionError("work started before the arguments were checked")
+
+    mp.setattr("benchmark.body.get_body", started)
+    mp.setattr("benchmark.protocols.completion.fit", started)
+
+
+def _op_run_folder(tmp: Path) -> Path:
+    run = tmp / "run"
+    run.mkdir()
+    table_json(run, "table1.json")
+    return run
+
+
+@case("convert: --fps 1e9", "data convert", "argument --fps", "1e9", "1..1000")
+def _(tmp, mp):
+    return ["data", "convert", str(motion_file(tmp / "m.npz")), "--out", str(tmp / "y.npz"), "--fps", "1e9"]
+
+
+@case("complete: --window 0", "complete", "argument --window", "0 is out of range", "> 0")
+def _(tmp, mp):
+    return ["complete", str(motion_file(tmp / "m.npz")), "--prior", "no-prior", "--out", str(tmp / "o"), "--window", "0"]
+
+
+@case("complete: --steps 0", "complete", "argument --steps", "0 is out of range", ">= 1")
+def _(tmp, mp):
+    return ["complete", str(motion_file(tmp / "m.npz")), "--prior", "no-prior", "--out", str(tmp / "o"), "--steps", "0"]
+
+
+@case("complete: --steps -5", "complete", "argument --steps", "-5 is out of range", ">= 1")
+def _(tmp, mp):
+    return ["complete", str(motion_file(tmp / "m.npz")), "--prior", "no-prior", "--out", str(tmp / "o"), "--steps", "-5"]
+
+
+@case("complete: --fps 0", "complete", "argument --fps", "0 is out of range", "1..1000")
+def _(tmp, mp):
+    return ["complete", str(motion_file(tmp / "m.npz")), "--prior", "no-prior", "--out", str(tmp / "o"), "--fps", "0"]
+
+
+@case("complete: --points 2.5", "complete", "argument --points", "'2.5' is not an integer")
+def _(tmp, mp):
+    return ["complete", str(motion_file(tmp / "m.npz")), "--prior", "no-prior", "--out", str(tmp / "o"), "--points", "2.5"]
+
+
+@case("complete: --start -1", "complete", "argument --start", "-1 is out of range", ">= 0")
+def _(tmp, mp):
+    return ["complete", str(motion_file(tmp / "m.npz")), "--prior", "no-prior", "--out", str(tmp / "o"), "--start", "-1"]
+
+
+@case("train: --steps 0", "train", "argument --steps", "0 is out of range", ">= 1")
+def _(tmp, mp):
+    return ["train", "vposer-slerp", "--steps", "0", "--out", str(tmp / "w")]
+
+
+@case("train: --checkpoint-every 0", "train", "argument --checkpoint-every", "0 is out of range")
+def _(tmp, mp):
+    return ["train", "vposer-slerp", "--checkpoint-every", "0", "--out", str(tmp / "w")]
+
+
+@case("train: --val-every -1", "train", "argument --val-every", "-1 is out of range", ">= 0")
+def _(tmp, mp):
+    return ["train", "vposer-slerp", "--val-every", "-1", "--out", str(tmp / "w")]
+
+
+@case("make-scans: --sequences 0", "data make-scans", "argument --sequences", "0 is out of range", ">= 1")
+def _(tmp, mp):
+    return ["data", "make-scans", "--out", str(tmp / "s"), "--sequences", "0"]
+
+
+@case("make-scans: --points 0", "data make-scans", "argument --points", "0 is out of range")
+def _(tmp, mp):
+    return ["data", "make-scans", "--out", str(tmp / "s"), "--points", "0"]
+
+
+@case("make-scans: --holes 1", "data make-scans", "argument --holes", "1 is out of range", "[0, 1)")
+def _(tmp, mp):
+    return ["data", "make-scans", "--out", str(tmp / "s"), "--holes", "1"]
+
+
+@case("make-scans: --noise-mm nan", "data make-scans", "argument --noise-mm", "nan is not finite")
+def _(tmp, mp):
+    return ["data", "make-scans", "--out", str(tmp / "s"), "--noise-mm", "nan"]
+
+
+@case("export-onnx: --opset 1", "export-onnx", "argument --opset", "1 is out of range", "an integer in 11..")
+def _(tmp, mp):
+    return ["export-onnx", "vposer-slerp", "--out", str(tmp / "v.onnx"), "--opset", "1"]
+
+
+@case("run: --jobs 0", "run", "argument --jobs", "0 is out of range")
+def _(tmp, mp):
+    return ["run", "table1", "--prior", "no-prior", "--jobs", "0", "--out", str(tmp / "o")]
+
+
+@case("run: --cpus-per-unit 0", "run", "argument --cpus-per-unit", "0 is out of range", "> 0")
+def _(tmp, mp):
+    return ["run", "table1", "--prior", "no-prior", "--backend", "ray", "--cpus-per-unit", "0", "--out", str(tmp / "o")]
+
+
+@case("run: --seed -1", "run", "argument --seed", "-1 is out of range", "0..4294967295")
+def _(tmp, mp):
+    return ["run", "table1", "--prior", "no-prior", "--seed", "-1", "--out", str(tmp / "o")]
+
+
+@case("data build: --seed abc", "data build", "argument --seed", "'abc' is not an integer")
+def _(tmp, mp):
+    return ["data", "build", "test", "--seed", "abc"]
+
+
+@case("fit-check: --fps inf", "fit-check", "argument --fps", "inf is not finite")
+def _(tmp, mp):
+    return ["fit-check", "--fps", "inf", "--out", str(tmp / "o")]
+
+
+@case("report: --workers 0", "report", "argument --workers", "0 is out of range")
+def _(tmp, mp):
+    return ["report", str(_op_run_folder(tmp)), "--workers", "0"]
+
+
+@case("report: --animation-fps 0", "report", "argument --animation-fps", "0 is out of range", "1..30")
+def _(tmp, mp):
+    return ["report", str(_op_run_folder(tmp)), "--animation-fps", "0"]
+
+
+@case("--weights NAME given twice", "run", "--weights", "'hmvae' is given twice", "give each NAME once")
+def _(tmp, mp):
+    return ["run", "table1", "--prior", "hmvae", "--weights", f"hmvae={WEIGHTS / 'hmvae.pt'}", "--weights",
+            f"hmvae={WEIGHTS / 'vposer.pt'}", "--out", str(tmp / "o")]
+
+
+@case("complete: --out read-only", "complete", "--out", "not writable", "chmod u+w")
+def _(tmp, mp):
+    source = motion_file(tmp / "m.npz")
+    _op_denied(mp)
+    _op_no_work(mp)
+    return ["complete", str(source), "--prior", "no-prior", "--out", str(tmp / "ro")]
+
+
+@case("perf: --out is a file", "perf", "--out", "is a file, not a folder")
+def _(tmp, mp):
+    def measured(*a, **k):
+        raise AssertionError("perf measured before checking --out")
+
+    mp.setattr("benchmark.perf.chamfer_compare", measured)
+    return ["perf", "--only", "chamfer", "--out", str(text_file(tmp / "perf.txt"))]
+
+
+@case("perf: --out holds a perf.json perf did not write", "perf", "perf.json", "not written by")
+def _(tmp, mp):
+    text_file(tmp / "p" / "perf.json", '{"mine": 1}')
+    return ["perf", "--only", "chamfer", "--out", str(tmp / "p")]
+
+
+@case("train: --out read-only", "train", "--out", "not writable")
+def _(tmp, mp):
+    _op_denied(mp)
+    return ["train", "vposer-slerp", "--steps", "1", "--out", str(tmp / "w")]
+
+
+@case("export-onnx: --force over a training record", "export-onnx", "vposer.json", "not written by export-onnx")
+def _(tmp, mp):
+    text_file(tmp / "vposer.json", json.dumps({"steps": 15000, "final_val": 0.1}))
+    return ["export-onnx", "vposer-slerp", "--out", str(tmp / "vposer.onnx"), "--force"]
+
+
+@case("make-scans: --force on a folder it did not write", "data make-scans", "not a folder",
+      "data make-scans", "nothing was deleted")
+def _(tmp, mp):
+    text_file(tmp / "X" / "thesis.tex")
+    return ["data", "make-scans", "--out", str(tmp / "X"), "--force", "--ids", "no-such-id"]
+
+
+@case("complete: --out is the capture folder", "complete", "is the input scan folder itself", "outside it")
+def _(tmp, mp):
+    capture = tmp / "CAP" / "SEQ"
+    capture.mkdir(parents=True)
+    np.savez(capture / "frame_0000.npz", points=np.zeros((5, 3)))
+    _op_no_work(mp)
+    return ["complete", str(capture), "--prior", "no-prior", "--out", str(capture), "--force"]
+
+
+@case("complete: --out contains the capture", "complete", "contains the input scan folder", "outside it")
+def _(tmp, mp):
+    capture = tmp / "CAP" / "SEQ"
+    capture.mkdir(parents=True)
+    _op_no_work(mp)
+    return ["complete", str(capture), "--prior", "no-prior", "--out", str(tmp / "CAP"), "--force"]
+
+
+@case("convert: --out is the input (--force)", "data convert", "would replace the input file")
+def _(tmp, mp):
+    source = motion_file(tmp / "m.npz")
+    return ["data", "convert", str(source), "--out", str(tmp / "." / "m.npz"), "--force"]
+
+
+@case("report: --out is the run folder", "report", "is the run folder itself", "outside it")
+def _(tmp, mp):
+    run = _op_run_folder(tmp)
+    return ["report", str(run), "--out", str(run)]
+
+
+@case("report: RUN/table1.json instead of RUN", "report", "table1.json is a file, not a run folder",
+      "python -m benchmark report")
+def _(tmp, mp):
+    return ["report", str(_op_run_folder(tmp) / "table1.json")]
+
+
+@case("train-report: --out is the weights folder", "train-report", "is the --weights-dir itself")
+def _(tmp, mp):
+    text_file(tmp / "w" / "a.json", json.dumps({"steps": 5}))
+    return ["train-report", "--weights-dir", str(tmp / "w"), "--out", str(tmp / "w")]
+
+# (end of section: options)
+
+
+# ------------------------------------------------------------------------------------------------
+# check-prior, report, the install
+# (section: misc)
+
+# (end of section: misc)
+
+
+# ------------------------------------------------------------------------------------------------
 
 
 def run_case(c: Case, tmp: Path, mp) -> tuple[int | None, str]:

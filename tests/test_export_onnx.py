@@ -82,11 +82,17 @@ def test_refuses_to_overwrite(vposer, exported, tmp_path):
     with pytest.raises(FileExistsError, match="--force"):
         export_onnx(vposer, path, check=False)
     assert (path.read_bytes(), sidecar_path(path).read_text()) == before
-    # a record alone also blocks; overwrite=True replaces both
+    # a record alone also blocks; overwrite=True replaces only what an export wrote: not a .json
+    # it did not write (a training record beside its checkpoint), then both of its own files
     other = tmp_path / "other.onnx"
     sidecar_path(other).write_text("{}")
     with pytest.raises(FileExistsError, match="other.json"):
         export_onnx(vposer, other, check=False)
+    with pytest.raises(ValueError, match="not written by export-onnx"):
+        export_onnx(vposer, other, check=False, overwrite=True)
+    assert sidecar_path(other).read_text() == "{}" and not other.exists()
+    sidecar_path(other).unlink()
+    export_onnx(vposer, other, check=False)
     record = export_onnx(vposer, other, check=False, overwrite=True)
     assert other.exists() and record["parity"]["ok"] is None
     assert json.loads(sidecar_path(other).read_text())["onnx_sha256"] == sha256_file(other)

@@ -35,7 +35,7 @@ TINY_CONFIG = {
     "vposer": {"hidden": 32, "latent": 32},
 }
 
-# priors.md section 2d: the official MotionPrior keys and shapes (after stripping "module.")
+# the official MotionPrior keys and shapes, after stripping "module." (docs/priors.md)
 PAPER_SHAPES = {
     "dct_att.weight": (128, 32640), "dct_att.bias": (128,),
     "bodyprior_enc_fc0_1.weight_g": (64, 1, 1), "bodyprior_enc_fc0_1.weight_v": (64, 158, 3), "bodyprior_enc_fc0_1.bias": (64,),
@@ -125,9 +125,9 @@ def test_paper_network_keys_shapes_and_counts():
     assert tuple(net.vposer.state_dict()["bodyprior_enc_bn1.weight"].shape) == (63,)
     assert tuple(net.vposer.state_dict()["bodyprior_dec_out.weight"].shape) == (126, 512)
     counts = net.parameter_counts()
-    assert counts["motion_prior"] == 14_104_080  # priors.md: ~14.1 M
-    assert counts["motion_prior_decoder"] == 4_397_312  # priors.md: ~4.4 M
-    assert counts["vposer_v1"] == 673_596  # priors.md section 1c
+    assert counts["motion_prior"] == 14_104_080  # docs/priors.md: 14,104,080
+    assert counts["motion_prior_decoder"] == 4_397_312  # docs/priors.md: 4,397,312
+    assert counts["vposer_v1"] == 673_596  # docs/priors.md, VPoser v1.0
     assert counts["total"] == 14_777_676
     assert not any(k.startswith("decoder.") for k in net.state_dict())
 

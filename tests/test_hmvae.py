@@ -160,7 +160,7 @@ def test_paper_size_keys_shapes_and_counts():
     off = official_state_dict(model)
     assert set(off) == set(sd) | {"dec." + k for k in sd if k.startswith("enc.")}
     s = parameter_summary(model)
-    assert s["weights"] == 13_233_480  # priors.md: dense-equivalent ~13.2 M
+    assert s["weights"] == 13_233_480  # docs/priors.md: the 13.2 M dense-equivalent
     assert s["parameters_total"] == s["weights"] + s["frozen_fixed"]
     assert s["weights_effective"] < s["weights"]
     traj = TrajectoryModel()

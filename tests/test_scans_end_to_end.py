@@ -52,12 +52,15 @@ def test_millimetres_read_as_metres_is_an_error_naming_the_file_and_the_fix(tmp_
 def test_a_bad_later_frame_is_an_error_naming_it(tmp_path):
     clouds = [person() for _ in range(3)]
     clouds[2] = np.full((5, 3), np.nan)
-    seq = ScanSequence(write_folder(tmp_path / "nan", clouds))  # frame 0 is checked at once, others on reading
+    folder = write_folder(tmp_path / "nan", clouds)
+    with pytest.raises(ValueError, match=r"frame_0002\.npz.*NaN"):  # every frame is checked at once (issue 33)
+        ScanSequence(folder)
+    seq = ScanSequence(folder, check=False)  # unchecked: the bad frame is an error on reading
     with pytest.raises(ValueError, match=r"frame_0002\.npz.*NaN"):
         seq.read_frames([0, 1, 2])
     clouds[2] = np.zeros((0, 3))
     with pytest.raises(ValueError, match=r"frame_0002\.npz: the frame has no points"):
-        ScanSequence(write_folder(tmp_path / "empty", clouds)).read_frames([2])
+        ScanSequence(write_folder(tmp_path / "empty", clouds), check=False).read_frames([2])
 
 
 def test_mismatched_or_unordered_timestamps_are_errors_naming_the_file(tmp_path):

@@ -146,28 +146,37 @@ def test_loader_without_num_batches_tracked_and_with_unimportable_hparams(tmp_pa
     ckpt = _official_ckpt(model)
     for k in [k for k in ckpt["state_dict"] if k.endswith("num_batches_tracked")]:
         del ckpt["state_dict"][k]
-    # Lightning pickles hyper-parameters (e.g. OmegaConf objects); the reader may not have that module.
-    fake = types.ModuleType("fake_omegaconf_for_test")
+    # Lightning pickles hyper-parameters (e.g. OmegaConf objects) and, in 1.x, callback classes as
+    # keys of 'callbacks'; the reader may not have those modules. They are read as inert stand-ins.
+    fakes = {n: types.ModuleType(n) for n in ("omegaconf", "omegaconf.dictconfig", "pytorch_lightning",
+                                               "pytorch_lightning.callbacks", "pytorch_lightning.callbacks.model_checkpoint")}
+    assert not any(n in sys.modules for n in fakes), "the real omegaconf / pytorch_lightning are installed"
 
     class DictConfig:
         def __init__(self, d):
             self.d = d
 
-    DictConfig.__module__ = fake.__name__
-    DictConfig.__qualname__ = "DictConfig"
-    fake.DictConfig = DictConfig
-    sys.modules[fake.__name__] = fake
+    class ModelCheckpoint:
+        pass
+
+    for cls, module in ((DictConfig, "omegaconf.dictconfig"), (ModelCheckpoint, "pytorch_lightning.callbacks.model_checkpoint")):
+        cls.__module__, cls.__qualname__ = module, cls.__name__
+        setattr(fakes[module], cls.__name__, cls)
+    sys.modules.update(fakes)
     try:
         ckpt["hyper_parameters"] = DictConfig({"model_params": {"num_neurons": 512, "latentD": 32}})
+        ckpt["callbacks"] = {ModelCheckpoint: {"best_model_score": torch.tensor(0.03), "dirpath": "snapshots"}}
         f = tmp_path / "V02_05_epoch=13_val_loss=0.03.ckpt"
         torch.save(ckpt, f)
     finally:
-        del sys.modules[fake.__name__]
+        for n in fakes:
+            del sys.modules[n]
     loaded = VPoser()
     with caplog.at_level("WARNING", logger="priors.vposer"):
         report = load_vposer_checkpoint(f, loaded)
-    assert "weights_only=True" in caplog.text  # the safe path refused it; the tolerant path read it
-    assert "<top level>/hyper_parameters" in report.ignored
+    assert "weights_only=True" in caplog.text and "omegaconf.dictconfig.DictConfig" in caplog.text  # read as stand-ins
+    assert "pytorch_lightning.callbacks.model_checkpoint.ModelCheckpoint" in caplog.text
+    assert "<top level>/hyper_parameters" in report.ignored and "<top level>/callbacks" in report.ignored
     assert report.chosen_because == "file given" and len(report.loaded) == 24
     torch.testing.assert_close(loaded.encoder_net[1].running_var, model.encoder_net[1].running_var)
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+from pathlib import Path
 
 import torch
 
@@ -75,12 +76,61 @@ TPOSE_TARGETS = {
 ANNY_TO_WORLD = ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
 
 
+class AnnyCacheError(ValueError):
+    """A file of Anny's model cache (``$ANNY_CACHE_DIR``, default ``~/.cache/anny``) that cannot be read."""
+
+
 def _make_anny(rig: str = "cmu_mb"):
     import anny
+    from safetensors import SafetensorError
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return anny.Anny(rig=rig)
+        try:
+            return anny.Anny(rig=rig)
+        except SafetensorError as exc:  # anny reads its cache with safetensors; the error names no file
+            raise _cache_error(exc) from exc
+
+
+def damaged_cache_files(folder: str | Path) -> dict[Path, str]:
+    """Every ``*.safetensors`` under ``folder`` that safetensors cannot open, with the reason."""
+    from safetensors import safe_open
+
+    bad = {}
+    for file in sorted(Path(folder).rglob("*.safetensors")):
+        try:
+            with safe_open(str(file), framework="pt") as fh:
+                fh.keys()
+        except Exception as exc:  # noqa: BLE001 - any failure to open is "damaged"
+            bad[file] = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return bad
+
+
+def _cache_error(exc: BaseException) -> AnnyCacheError:
+    """The file anny was reading when ``exc`` was raised (from its ``load_safetensors(path)`` frame),
+    any other damaged file of the cache, and the fix."""
+    from anny.paths import get_anny_cache_path
+
+    cache = Path(get_anny_cache_path())
+    bad = damaged_cache_files(cache)
+    tb, reading = exc.__traceback__, None
+    while tb is not None:
+        if tb.tb_frame.f_code.co_name == "load_safetensors" and "path" in tb.tb_frame.f_locals:
+            reading = Path(tb.tb_frame.f_locals["path"])
+        tb = tb.tb_next
+    if reading is not None:
+        bad.setdefault(reading, str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+    if not bad:
+        return AnnyCacheError(f"Anny's model cache {cache} cannot be read ({type(exc).__name__}: {exc}); fix: delete "
+                              f"the folder (rm -r {cache}) and rerun: Anny rebuilds it (~1 min)")
+    files = sorted(bad, key=lambda f: (f != reading, str(f)))
+    what = "; ".join(f"{f} ({bad[f]})" for f in files)
+    return AnnyCacheError(
+        f"Anny's model cache file{'s' if len(files) > 1 else ''} {what}: damaged, probably cut short while Anny was "
+        f"building it (an interrupted first run); fix: delete {'them' if len(files) > 1 else 'it'} "
+        f"(rm {' '.join(str(f) for f in files)}) or the whole cache folder {cache}, then rerun: Anny rebuilds it "
+        "(~1 min). If another process is building the cache right now, wait for it to finish instead"
+    )
 
 
 class AnnyBody(BodyModel):

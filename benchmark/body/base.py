@@ -7,7 +7,7 @@ A body maps, batched over (batch, time):
 to a :class:`BodyOutput` with vertices (B, T, V, 3) and the 22 joint positions (B, T, 22, 3).
 
 Rotations are local, relative to a T-pose rest whose joint frames are aligned with the world
-axes (the SMPL convention of PROTOCOL.md); with zero rotations and zero translation the body
+axes (the SMPL convention, docs/protocol.md); with zero rotations and zero translation the body
 stands in its T-pose. The shape-dependent rest state (rest mesh, rest joints, per-joint rest
 transforms) is computed once per shape by :meth:`BodyModel.prepare` and shared by all frames.
 """

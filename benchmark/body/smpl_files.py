@@ -17,17 +17,23 @@ sparse matrices. They are read here without chumpy: a :class:`pickle.Unpickler` 
 ``chumpy.*`` class to :class:`ChumpyStandIn`, which keeps the pickled state (a ``chumpy.ch.Ch`` keeps
 its array under ``'x'``; a ``chumpy.reordering.Select`` is ``a.ravel()[idxs].reshape(preferred_shape)``),
 and every ``scipy.sparse`` matrix class to :class:`SparseStandIn`, densified from its
-``data / indices / indptr`` state. A ``.pkl`` is still a pickle: only open files you trust.
+``data / indices / indptr`` state. Nothing else is imported or called: besides those stand-ins the
+unpickler knows only numpy arrays and scalars and plain containers (:data:`MODEL_PICKLE_GLOBALS`),
+and a file that names anything else (``os.system``, ``builtins.eval``...) is refused with
+:class:`benchmark.safe_loading.UnsafeFileError` before any of it runs.
 """
 
 from __future__ import annotations
 
+import _compat_pickle
 import importlib
 import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from benchmark.safe_loading import unsafe_file_error
 
 REQUIRED_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
 MODEL_TYPES = {24: "smpl", 52: "smplh", 55: "smplx"}  # number of joints -> model type
@@ -88,21 +94,48 @@ def _stand_in(base: type, module: str, name: str) -> type:
     return _STAND_INS[key]
 
 
+# Everything a body-model pickle may name besides the chumpy and scipy.sparse classes (which become
+# stand-ins): numpy arrays, dtypes and scalars, plain containers, and copyreg's reconstructor for
+# Python-2 class pickles (it only calls ``__new__`` of classes that passed this same check). Names
+# are checked after Python-2 names (``copy_reg``, ``__builtin__``) are mapped to Python 3's and
+# ``numpy.core`` to ``numpy._core``.
+MODEL_PICKLE_GLOBALS = frozenset({
+    "numpy.ndarray", "numpy.dtype", "numpy._core.multiarray._reconstruct", "numpy._core.multiarray.scalar",
+    "numpy._core.numeric._frombuffer", "copyreg._reconstructor", "_codecs.encode", "collections.OrderedDict",
+    "builtins.object", "builtins.set", "builtins.frozenset", "builtins.list", "builtins.dict", "builtins.tuple",
+    "builtins.int", "builtins.float", "builtins.complex", "builtins.bool", "builtins.str", "builtins.bytes",
+    "builtins.bytearray",
+})
+_REFUSED_FIX = (
+    "use the model file as published on the SMPL / SMPL-H / MANO website, or its .npz release "
+    "(e.g. AMASS's smplh/neutral/model.npz, read without pickle)"
+)
+
+
+class _RefusedGlobal(pickle.UnpicklingError):
+    def __init__(self, full_name: str):
+        super().__init__(full_name)
+        self.full_name = full_name
+
+
 class _ModelUnpickler(pickle.Unpickler):
-    """Unpickler for body-model files: chumpy and scipy.sparse classes become stand-ins."""
+    """Unpickler for body-model files: chumpy and scipy.sparse classes become stand-ins, the
+    names of :data:`MODEL_PICKLE_GLOBALS` are imported, anything else is refused."""
 
     def find_class(self, module: str, name: str):
+        if (module, name) in _compat_pickle.NAME_MAPPING:  # Python-2 names
+            module, name = _compat_pickle.NAME_MAPPING[(module, name)]
+        module = _compat_pickle.IMPORT_MAPPING.get(module, module)
         if module == "chumpy" or module.startswith("chumpy."):
             return _stand_in(ChumpyStandIn, module, name)
         if module == "scipy.sparse" or module.startswith("scipy.sparse."):
             return _stand_in(SparseStandIn, module, name)
         if module == "numpy.core" or module.startswith("numpy.core."):
             # numpy >= 2 moved numpy.core to numpy._core (old pickles name the former).
-            try:
-                return getattr(importlib.import_module("numpy._core" + module[len("numpy.core"):]), name)
-            except (ImportError, AttributeError):
-                pass
-        return super().find_class(module, name)
+            module = "numpy._core" + module[len("numpy.core"):]
+        if f"{module}.{name}" not in MODEL_PICKLE_GLOBALS:
+            raise _RefusedGlobal(f"{module}.{name}")
+        return getattr(importlib.import_module(module), name)
 
 
 def load_pickle_without_chumpy(path: str | Path) -> dict:
@@ -115,6 +148,8 @@ def load_pickle_without_chumpy(path: str | Path) -> dict:
     with open(path, "rb") as fh:
         try:
             data = _ModelUnpickler(fh, encoding="latin1").load()  # latin1: Python-2 byte strings decode 1:1
+        except _RefusedGlobal as exc:
+            raise unsafe_file_error(path, [exc.full_name], _REFUSED_FIX) from None
         except Exception as exc:  # noqa: BLE001 - any failure means "not a readable model pickle"
             raise ValueError(f"{path}: could not unpickle the body-model file ({type(exc).__name__}: {exc})") from exc
     if not isinstance(data, dict):

@@ -32,6 +32,7 @@ import torch
 import yaml
 
 from benchmark.motion import Motion
+from benchmark.plausibility import check_motion
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 FRAME_RATE_TABLE = Path(__file__).with_name("frame_rates.yaml")
@@ -204,6 +205,10 @@ def load_amass(
         poses=aa.float(), trans=new_trans.float(), timestamps=timestamps,
         shape=shape, body=body if shape is not None else None, source=f"amass:{path}", meta=meta,
     )
+    rate_note = f" (corrected by {FRAME_RATE_TABLE.name})" if "frame_rate_correction" in meta else ""
+    check_motion(motion, str(path), time_field=rate_key + rate_note,
+                 time_fix=f"{rate_key!r} must be the capture rate in frames per second (AMASS: 60-250)",
+                 trans_field="trans")
     if fps is not None:
         motion = motion.resample_fps(float(fps))
     return motion

@@ -59,6 +59,7 @@ from benchmark.loaders.bvh_format import (  # re-exported: the file format lives
     write_bvh,
 )
 from benchmark.motion import Motion
+from benchmark.plausibility import MIN_MOTION_FRAMES, check_motion
 from benchmark.rotations import (
     axis_angle_to_matrix,
     matrix_to_axis_angle,
@@ -271,16 +272,22 @@ def load_bvh(
     data = parse_bvh(path)
     where = str(path)
     values = data.values
-    if drop_first_frame:
-        if data.num_frames < 2:
-            raise ValueError(f"{where}: {data.num_frames} frame(s); nothing left after dropping frame 0 "
-                             "(pass drop_first_frame=False for files without an added T-pose frame)")
-        data = BVHData(data.skeleton, data.frame_time, values[1:])
-    elif data.num_frames < 1:
-        raise ValueError(f"{where}: no frames")
+    # the skeleton first (a file the joint map cannot read is that error, whatever its frames)
     retarget = retarget_to_smpl(data.skeleton, joint_map, rest_twist_deg, where)
     if check_axes:
         _check_axes(retarget.rest_joints, where)
+    if drop_first_frame:
+        if data.num_frames - 1 < MIN_MOTION_FRAMES:
+            raise ValueError(
+                f"{where}: 'Frames: {data.num_frames}': the loader drops frame 0 (the T-pose the CMU converter adds "
+                f"to every file), which leaves {max(data.num_frames - 1, 0)}, and a motion needs at least "
+                f"{MIN_MOTION_FRAMES}. Fix: export the whole take; for a file without that added T-pose, repeat its "
+                "first frame line at the top of the MOTION data and add 1 to 'Frames:' (from Python: "
+                "load_bvh(path, drop_first_frame=False))"
+            )
+        data = BVHData(data.skeleton, data.frame_time, values[1:])
+    elif data.num_frames < 1:
+        raise ValueError(f"{where}: 'Frames: 0': the file holds no motion; export the whole take")
 
     rot = retarget.local_rotations(data.local_rotations())
     poses = matrix_to_axis_angle(rot)
@@ -311,6 +318,11 @@ def load_bvh(
     if ignored_pos:
         meta["ignored_position_channels"] = ignored_pos
     motion = Motion(poses=poses.float(), trans=trans.float(), timestamps=timestamps, source=f"bvh:{path}", meta=meta)
+    check_motion(motion, where, time_field="Frame Time",
+                 time_fix="'Frame Time' is the seconds per frame (1/120 = 0.0083333 for 120 fps)",
+                 trans_field="root position channels",
+                 trans_fix=(f"the loader reads lengths in CMU units ({unit:.6g} m each): write the file in those units "
+                            "(from Python: load_bvh(path, unit=METRES_PER_FILE_UNIT))"))
     if fps is not None:
         motion = motion.resample_fps(float(fps))
     return motion

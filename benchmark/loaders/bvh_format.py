@@ -9,6 +9,7 @@ read the same way).
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -123,9 +124,21 @@ def parse_bvh(path) -> BVHData:
     ``Frames:`` and ``Frame Time:``). Errors name the file and the line."""
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: no such BVH file") from None
+    except IsADirectoryError:
+        raise ValueError(f"{path}: is a folder, not a BVH file") from None
+    if not raw.strip():
+        raise ValueError(f"{path}: the file is empty; a BVH file is text: HIERARCHY ... then MOTION ... "
+                         "(export the take again)")
+    if b"\0" in raw[:65536]:
+        raise ValueError(f"{path}: a binary file, not a BVH (text: HIERARCHY ... then MOTION ...); export the take as "
+                         "BVH again, or check that this is the file you meant")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        text = raw.decode("latin-1")  # older exporters: joint names in a legacy 8-bit encoding
     m = re.search(r"^\s*MOTION\s*$", text, re.MULTILINE)
     if m is None:
         raise ValueError(f"{path}: no MOTION section (a BVH file has HIERARCHY ... then MOTION ...)")
@@ -138,8 +151,8 @@ def parse_bvh(path) -> BVHData:
     if fm is None:
         raise ValueError(f"{path}:{motion_line}: expected 'Frames: N' and 'Frame Time: dt' after MOTION")
     n_frames, frame_time = int(fm.group(1)), _float(fm.group(2), path, "Frame Time")
-    if not frame_time > 0:
-        raise ValueError(f"{path}: 'Frame Time' must be positive, got {frame_time}")
+    if not (frame_time > 0 and math.isfinite(frame_time)):
+        raise ValueError(f"{path}: 'Frame Time' must be a positive number of seconds per frame, got {frame_time}")
     try:
         flat = np.array(body[fm.end():].split(), dtype=np.float64)
     except ValueError as e:
@@ -199,7 +212,10 @@ def _parse_hierarchy(toks, path) -> BVHSkeleton:
                 pos_back()
                 offsets[j] = offset()
             elif low == "channels":
-                n = int(_float(take()[0], path, "CHANNELS count"))
+                count, count_line = take()
+                if not count.isdigit():
+                    raise ValueError(f"{path}:{count_line}: CHANNELS count: expected a whole number, got {count!r}")
+                n = int(count)
                 chans = tuple(take()[0] for _ in range(n))
                 for c in chans:
                     if not _CHANNEL_RE.match(c):

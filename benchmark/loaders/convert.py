@@ -63,7 +63,11 @@ def convert(input_path, out_path, fps: float | None = None, overwrite: bool = Fa
     ``.npz`` at ``out_path`` with :meth:`Motion.save`, and return the Motion.
 
     body: a body model (:func:`benchmark.body.get_body`): the motion's shape is stored for it (SMPL
-        betas cut or zero-padded to its shape count, another body's shape dropped).
+        betas cut or zero-padded to its shape count, another body's shape dropped); a shape whose
+        length cannot be the body's is an error (:func:`benchmark.plausibility.check_shape`).
+
+    Every loader checks what it reads (:mod:`benchmark.plausibility`): time units, translation
+    scale; the error names the input file, the field and the fix.
 
     Refuses to replace an existing ``out_path`` unless ``overwrite=True`` (CLI: ``--force``). The
     output folder is checked (creatable, writable) before the input is read.
@@ -91,6 +95,6 @@ def convert(input_path, out_path, fps: float | None = None, overwrite: bool = Fa
     if body is not None:
         from benchmark.protocols.table_run import _shape_for_body
 
-        motion = _shape_for_body(motion, body)
+        motion = _shape_for_body(motion, body, str(input_path))
     motion.save(out_path)
     return motion

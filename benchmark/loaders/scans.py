@@ -17,6 +17,13 @@ Meshes (a PLY/OBJ with faces) contribute their vertices as the frame's points, u
 is given: then ``sample`` points are drawn uniformly over each mesh's surface area
 (:func:`benchmark.observations.sample_surface`). Point clouds always contribute their points.
 Units are taken as they are in the files: the project expects metres, y up.
+
+Plausibility (:mod:`benchmark.plausibility`, thresholds there): timestamps must give 1-1,000 fps
+over at most an hour (millisecond timestamps are refused, naming the fix); every frame needs at
+least 3 points and coordinates within 1 km of the origin. :class:`ScanSequence` (what ``run
+table1 --data scans=DIR`` and ``complete DIR`` read) checks every frame file when it is built, so a
+bad frame is an error before any work unit starts; a PLY whose header declares more vertices than
+the file holds (a truncated ASCII PLY) is an error too.
 """
 
 from __future__ import annotations
@@ -30,6 +37,8 @@ import numpy as np
 import torch
 
 from benchmark.observations import PointCloudSequence, sample_surface
+from benchmark.plausibility import (check_scan_coordinates, check_scan_frame_size, check_scan_points,
+                                    check_timestamps)
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +73,8 @@ def _check_points(path: Path, points: np.ndarray, what: str) -> np.ndarray:
     if points.shape[0] == 0:
         raise ValueError(f"{path}: the frame has no points; remove the file or re-export it")
     if not np.issubdtype(points.dtype, np.number) or not np.isfinite(points).all():
-        raise ValueError(f"{path}: {what} holds non-numeric or non-finite values (NaN/inf); clean the file")
+        raise ValueError(f"{path}: {what}: non-numeric or non-finite values (NaN/inf); clean the file (drop those "
+                         "points) or re-export it")
     return points.astype(np.float64, copy=False)
 
 
@@ -94,6 +104,9 @@ def read_scan_frame(path: str | Path, sample: int | None = None,
         return _check_points(path, points, "'points'")
     if suffix not in (".ply", ".obj"):
         raise ValueError(f"{path}: unsupported frame format {suffix!r}; use one of {', '.join(FRAME_SUFFIXES)}")
+    if path.stat().st_size == 0:
+        raise ValueError(f"{path}: the file is empty (0 bytes); re-export the frame, or remove the file and its "
+                         "timestamp")
 
     import trimesh
 
@@ -111,6 +124,12 @@ def read_scan_frame(path: str | Path, sample: int | None = None,
     if vertices is None:
         raise ValueError(f"{path}: trimesh read a {type(geometry).__name__} without vertices; re-export the frame")
     vertices = _check_points(path, vertices, "the vertices")
+    declared = _ply_vertex_count(path) if suffix == ".ply" else None
+    if declared is not None and declared != vertices.shape[0]:
+        raise ValueError(
+            f"{path}: the PLY header declares {declared} vertices but the file holds {vertices.shape[0]}; the file is "
+            "truncated or damaged: re-export it"
+        )
     faces = np.asarray(getattr(geometry, "faces", np.zeros((0, 3))))
     if sample is None:
         return vertices
@@ -118,6 +137,17 @@ def read_scan_frame(path: str | Path, sample: int | None = None,
         raise ValueError(f"{path}: sample={sample} needs a mesh with faces, but the file is a point cloud; drop sample")
     points = sample_surface(torch.from_numpy(vertices), torch.from_numpy(faces.astype(np.int64)), sample, generator)
     return points.numpy()
+
+
+def _ply_vertex_count(path: Path) -> int | None:
+    """The vertex count a PLY header declares (``element vertex N``), or None if it has none."""
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    end = head.find(b"end_header")
+    if end < 0:
+        return None
+    m = re.search(rb"^element\s+vertex\s+(\d+)\s*$", head[:end], re.MULTILINE)
+    return int(m.group(1)) if m else None
 
 
 def read_timestamps(folder: str | Path) -> tuple[np.ndarray, Path] | None:
@@ -178,7 +208,7 @@ def load_scan_folder(
         else:
             raise ValueError(
                 f"scan folder {folder}: no timestamps; add {TIMESTAMP_FILES[0]} (one time in seconds per frame) "
-                f"or {TIMESTAMP_FILES[1]} to the folder, or pass fps= (e.g. --fps 50)"
+                f"or {TIMESTAMP_FILES[1]} to the folder, or pass fps= (e.g. fps=50)"
             )
     if ts.shape[0] != T:
         raise ValueError(
@@ -187,9 +217,12 @@ def load_scan_folder(
         )
     if not np.isfinite(ts).all() or (T > 1 and not (np.diff(ts) > 0).all()):
         raise ValueError(f"scan folder {folder}: timestamps from {source} must be finite and strictly increasing")
+    check_timestamps(ts, f"scan folder {folder}", field=source.replace("the ", "", 1))
 
     generator = torch.Generator().manual_seed(seed) if sample is not None else None
     clouds = [read_scan_frame(path, sample, generator) for path in frames]
+    for path, cloud in zip(frames, clouds):
+        check_scan_points(cloud, str(path))
     counts = [c.shape[0] for c in clouds]
     points = torch.zeros(1, T, max(counts), 3, dtype=dtype)
     for t, cloud in enumerate(clouds):  # file IO is per frame anyway
@@ -228,9 +261,10 @@ def to_harness_frame(points: np.ndarray, up: str = "y", units: str = "m") -> np.
     return out
 
 
-def check_units(points_m: np.ndarray, path: Path, up: str, units: str) -> None:
+def check_units(points_m: np.ndarray, path: Path, up: str, units: str, warn: bool = True) -> list[str]:
     """Error naming ``path`` when a frame (already converted to metres, y up) cannot be a person
-    in these units; a warning when its extent says the up axis is probably another one."""
+    in these units; a warning when its extent says the up axis is probably another one (logged
+    when ``warn``; returned either way)."""
     lo, hi = points_m.min(0), points_m.max(0)
     extent = hi - lo
     height = float(extent[1])
@@ -244,14 +278,18 @@ def check_units(points_m: np.ndarray, path: Path, up: str, units: str) -> None:
             f"{height:.4g} m, not a person's height ({PLAUSIBLE_HEIGHT_M[0]}-{PLAUSIBLE_HEIGHT_M[1]} m); {hint}"
         )
     horizontal = max(float(extent[0]), float(extent[2]))
+    out = []
     if height < 0.6 * horizontal:
         other = "z" if up == "y" else "y"
-        log.warning("%s: the body is %.2f m tall along the up axis (%s) but %.2f m wide: is the capture %s-up? "
-                    "(pass --up %s; ignore this for a lying or crouching subject)", path, height, up, horizontal,
-                    other, other)
+        out.append(f"{path}: the body is {height:.2f} m tall along the up axis ({up}) but {horizontal:.2f} m wide: is "
+                   f"the capture {other}-up? (pass --up {other}; ignore this for a lying or crouching subject)")
+    if warn:
+        for message in out:
+            log.warning("%s", message)
+    return out
 
 
-def check_timestamps(ts: np.ndarray, where: str) -> None:
+def check_timestamp_gaps(ts: np.ndarray, where: str) -> None:
     """Warn about gaps (an interval over GAP_FACTOR x the median), naming the source."""
     if ts.shape[0] < 3:
         return
@@ -266,11 +304,17 @@ def check_timestamps(ts: np.ndarray, where: str) -> None:
 
 
 class ScanSequence:
-    """One captured sequence folder, read lazily: the frame list and timestamps at construction,
-    the points on demand (:meth:`read_frames`). Units and up axis are converted on reading."""
+    """One captured sequence folder: the frame list and timestamps at construction, the points on
+    demand (:meth:`read_frames`). Units and up axis are converted on reading.
+
+    check: read and check every frame file now (:meth:`validate`), so that a bad frame is an error
+    before any work starts (False: only the timestamps are checked; frames on reading).
+    rate_flag: the command-line flag that gives a capture rate to a folder without timestamps, named
+    in that error (``complete``: ``--capture-fps``; None: the fix is a timestamps file).
+    """
 
     def __init__(self, folder: str | Path, up: str = "y", units: str = "m", fps: float | None = None,
-                 check: bool = True):
+                 check: bool = True, rate_flag: str | None = None):
         self.folder = Path(folder)
         self.up, self.units = up, units
         to_harness_frame(np.zeros((1, 3)), up, units)  # validates both
@@ -284,9 +328,11 @@ class ScanSequence:
                 raise ValueError(f"fps must be > 0, got {fps}")
             ts, source = np.arange(len(self.frames), dtype=np.float64) / float(fps), f"fps={fps}"
         else:
+            rate = f", or give the capture rate with {rate_flag} (e.g. {rate_flag} 50)" if rate_flag else ""
             raise ValueError(
-                f"scan folder {self.folder}: no timestamps; add {TIMESTAMP_FILES[0]} (one time in seconds per frame) "
-                f"or {TIMESTAMP_FILES[1]} to the folder, or pass an fps (e.g. --fps 50)"
+                f"scan folder {self.folder}: no timestamps; add {self.folder / TIMESTAMP_FILES[0]} with one time in "
+                f"seconds per frame, in frame order (a 50 fps capture: 0.00, 0.02, 0.04, ...), or "
+                f"{TIMESTAMP_FILES[1]}{rate}"
             )
         if ts.shape[0] != len(self.frames):
             raise ValueError(
@@ -299,13 +345,32 @@ class ScanSequence:
                              f"frame {self.frames[min(bad, len(self.frames) - 1)].name}: {ts[bad]!r})")
         if len(self.frames) < 2:
             raise ValueError(f"scan folder {self.folder}: one frame only; a sequence needs at least two")
-        check_timestamps(ts, source)
+        fix = None
+        if found is None:
+            fix = (f"give the capture rate in frames per second{' (' + rate_flag + ')' if rate_flag else ''}, or add "
+                   f"{TIMESTAMP_FILES[0]} (one time in seconds per frame)")
+        check_timestamps(ts, source if found is not None else f"scan folder {self.folder} ({source})",
+                         field="timestamps" if found is not None else "fps", fix=fix)
+        check_timestamp_gaps(ts, source)
         self.timestamps = ts
         self.timestamps_source = source
         self.source = f"scans:{self.folder}"
         self.meta = {"subject": "", "folder": str(self.folder), "up": up, "units": units}
+        self._validated = False
         if check:
-            self.read_frames([0])
+            self.validate()
+
+    def validate(self) -> None:
+        """Read and check every frame file (parse, point count, finite, plausible coordinates in
+        metres, a person's height): the first bad frame is an error naming its file. Warnings are
+        logged once per sequence (the first, and how many frames had one)."""
+        warnings: list[str] = []
+        for i in range(len(self.frames)):
+            self._read_frame(i, warnings)
+        if warnings:
+            more = f" (and warnings on {len(warnings) - 1} more frame(s) of {self.folder})" if len(warnings) > 1 else ""
+            log.warning("%s%s", warnings[0], more)
+        self._validated = True
 
     def content_sha256(self) -> str:
         """Content hash of the capture as a unit reads it: the up axis and units, the timestamps
@@ -330,14 +395,23 @@ class ScanSequence:
         """Span plus one median frame period, as :attr:`benchmark.motion.Motion.duration`."""
         return float(self.timestamps[-1] - self.timestamps[0]) + 1.0 / self.capture_fps
 
+    def _read_frame(self, i: int, warnings: list[str]) -> np.ndarray:
+        path = self.frames[int(i)]
+        pts = to_harness_frame(read_scan_frame(path), self.up, self.units)
+        check_scan_frame_size(pts, str(path))
+        warnings += check_units(pts, path, self.up, self.units, warn=False)
+        warnings += check_scan_coordinates(pts, str(path), warn=False)
+        return pts
+
     def read_frames(self, indices) -> list[np.ndarray]:
-        """(N_i, 3) float64 points in metres, y up, of the given frames (each checked)."""
-        out = []
+        """(N_i, 3) float64 points in metres, y up, of the given frames (each checked; warnings are
+        logged unless :meth:`validate` has logged them already)."""
+        out, warnings = [], []
         for i in indices:
-            path = self.frames[int(i)]
-            pts = to_harness_frame(read_scan_frame(path), self.up, self.units)
-            check_units(pts, path, self.up, self.units)
-            out.append(pts)
+            out.append(self._read_frame(int(i), warnings))
+        if not self._validated:
+            for message in warnings:
+                log.warning("%s", message)
         return out
 
     def nearest_frames(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -380,7 +454,8 @@ def scan_data_spec(data: str | None, up: str | None, units: str | None) -> str |
 
 def find_scan_sequences(root: str | Path, up: str = "y", units: str = "m", fps: float | None = None) -> dict:
     """Scan sequences under ``root`` by id: each sub-folder holding frame files (its name is the
-    id), or ``root`` itself when it holds frames. Error when there are none."""
+    id), or ``root`` itself when it holds frames. Error when there are none. Every frame of every
+    sequence is read and checked here (:meth:`ScanSequence.validate`), before any work unit."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"--data scans={root}: the folder does not exist")

@@ -1,4 +1,4 @@
-"""Metrics: pure functions of batched tensors, metres in and out (PROTOCOL.md).
+"""Metrics: pure functions of batched tensors, metres in and out (docs/protocol.md, conventions).
 
 - :mod:`.chamfer`: Chamfer distance / differentiable Chamfer loss (kdtree = pykdtree, scipy,
   tiled, naive backends; :class:`~.chamfer.StaticChamfer` for a fit against fixed points).

@@ -1,4 +1,4 @@
-"""Chamfer distance between padded batches of point sets, as PROTOCOL.md defines it.
+"""Chamfer distance between padded batches of point sets, as docs/protocol.md defines it.
 
     chamfer(A, B) = 0.5 * (mean_{a in A} min_{b in B} |a - b| + mean_{b in B} min_{a in A} |b - a|)
 
@@ -419,7 +419,7 @@ def chamfer_loss(a: torch.Tensor, b: torch.Tensor, a_lengths: torch.Tensor | Non
         b: (N, Q, 3) padded points, metres (e.g. the observed points), same device and dtype.
         a_lengths, b_lengths: (N,) long valid-prefix lengths (each in [1, P] / [1, Q]) or None.
         squared: use squared distances (m^2) instead of Euclidean ones (m). The reported metric
-            never squares (PROTOCOL.md); an optimisation loss may.
+            never squares (docs/protocol.md); an optimisation loss may.
         backend: "auto" | "kdtree" | "scipy" | "tiled" | "naive" (see module docstring).
         reduction: "none" -> (N,) one value per element; "mean" / "sum" -> scalar over elements.
         max_tile_elements: largest distance tile of the tiled backend, in elements.
@@ -460,7 +460,7 @@ def _chamfer(a, b, a_lengths, b_lengths, squared, backend, reduction, max_tile_e
 def chamfer_distance(a: torch.Tensor, b: torch.Tensor, a_lengths: torch.Tensor | None = None,
                      b_lengths: torch.Tensor | None = None, backend: str = "auto",
                      max_tile_elements: int = DEFAULT_MAX_TILE_ELEMENTS) -> torch.Tensor:
-    """The reported Chamfer metric of PROTOCOL.md, one value per batch element (no autograd).
+    """The reported Chamfer metric of docs/protocol.md, one value per batch element (no autograd).
 
     ``0.5 * (mean_{a} min_{b} |a - b| + mean_{b} min_{a} |b - a|)``, Euclidean distances.
 

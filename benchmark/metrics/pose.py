@@ -1,4 +1,4 @@
-"""Pose and motion metrics on batched sequences (PROTOCOL.md): MPJPE, PA-MPJPE, V2V, acceleration.
+"""Pose and motion metrics on batched sequences (docs/protocol.md): MPJPE, PA-MPJPE, V2V, acceleration.
 
 Inputs are positions in metres, (B, T, J, 3) (joints, or vertices for V2V), with an optional
 ``mask`` (B, T) bool of valid frames (None = all valid). Outputs are metres (m/s^2 for
@@ -13,7 +13,7 @@ Reductions (argument ``reduction``, the same for every metric):
 - ``"sequence"`` (default): (B,) mean over the valid frames of each sequence.
 - ``"sum"``: (B,) sum over the valid frames of each sequence; with :func:`valid_frame_counts`
   this is the sum-reducible state an accumulator keeps (merging workers is addition).
-- ``"mean"``: scalar mean over all valid frames of all sequences, the number PROTOCOL.md puts
+- ``"mean"``: scalar mean over all valid frames of all sequences, the number docs/protocol.md puts
   in a table (a frame-weighted mean, never a mean of per-sequence means).
 
 :func:`reduce_frames` applies the same reductions to any per-frame metric (e.g. a per-frame

@@ -1,4 +1,4 @@
-"""Point-to-surface Chamfer distance between point clouds and triangle meshes (PROTOCOL.md, table1).
+"""Point-to-surface Chamfer distance between point clouds and triangle meshes (docs/protocol.md, table1).
 
 A vertex-based Chamfer has a floor set by the mesh's vertex spacing; this column measures the
 same definition against the mesh's triangles instead:

@@ -1,4 +1,4 @@
-"""The completion protocol (PROTOCOL.md, table1): fit every prior to degraded point clouds, score 30 fps output.
+"""The completion protocol (docs/protocol.md, table1): fit every prior to degraded point clouds, score 30 fps output.
 
 One work unit = one prior x one grid cell x one batch of sequences. All sequences of a unit are
 optimised together as one batch of latents (no Python loop over sequences or frames in the loop).
@@ -7,7 +7,7 @@ Objective, the same for every prior (the table spec states it and the JSON recor
 
     sum_b [ ChamferMM_b(mesh vertices at observed timestamps, observed points) + lambda_prior * prior_b ]
 
-ChamferMM is the PROTOCOL.md Chamfer (Euclidean, half of the two directed means) in millimetres,
+ChamferMM is the docs/protocol.md Chamfer (Euclidean, half of the two directed means) in millimetres,
 averaged over the sequence's observed frames; prior_b is the adapter's term. Variables: the
 adapter's latents, the body shape, and the free rigid parameters the adapter needs:
 

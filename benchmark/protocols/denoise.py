@@ -1,4 +1,4 @@
-"""The denoise table (PROTOCOL.md "denoise"; Motion-DVAE, Fiche et al. 2023, section 5.1, Table 1).
+"""The denoise table (docs/protocol.md, "denoise"; Motion-DVAE, Fiche et al. 2023, section 5.1, Table 1).
 
 Data: clean 2 s windows at 30 fps of the test motions (:class:`benchmark.protocols.motion_fit.MotionSource`),
 ground truth posed on the body with each motion's own shape, which is fixed (never optimised).

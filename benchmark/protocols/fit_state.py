@@ -114,7 +114,7 @@ LATENT_INITS = ("sample", "mean")  # objective.latent_init (initial_latents)
 
 def initial_latents(adapter: PriorAdapter, batch: FitBatch, generator: torch.Generator,
                     latent_init: str = "sample") -> dict[str, torch.Tensor]:
-    """A fit's starting latents: ``latent_init="sample"`` (table1 v1-v2, PROTOCOL.md): the adapter's
+    """A fit's starting latents: ``latent_init="sample"`` (table1 v1-v2, docs/protocol.md): the adapter's
     ``init_latents`` (a random prior sample, or a deterministic encoder output); ``"mean"`` (table1
     v3): the prior's mean (``mean_latents``) where the adapter's start is a random sample, else its
     ``init_latents`` (deterministic already)."""

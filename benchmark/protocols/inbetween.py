@@ -1,4 +1,4 @@
-"""The in-betweening table (PROTOCOL.md "inbetween"; HM-VAE, Li et al. 2021, Table 2; Harvey et al. 2020).
+"""The in-betweening table (docs/protocol.md, "inbetween"; HM-VAE, Li et al. 2021, Table 2; Harvey et al. 2020).
 
 Data: clean 2 s windows at 30 fps of the test motions (:class:`benchmark.protocols.motion_fit.MotionSource`),
 ground truth posed on the body with each motion's own shape, fixed (never optimised).

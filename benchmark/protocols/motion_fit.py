@@ -1,4 +1,4 @@
-"""Shared machinery of the motion tables (denoise, inbetween, reconstruction; PROTOCOL.md).
+"""Shared machinery of the motion tables (denoise, inbetween, reconstruction; docs/protocol.md).
 
 Three parts:
 

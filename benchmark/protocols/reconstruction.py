@@ -1,4 +1,4 @@
-"""The reconstruction table (PROTOCOL.md "reconstruction"; HM-VAE, Li et al. 2021, Table 3).
+"""The reconstruction table (docs/protocol.md, "reconstruction"; HM-VAE, Li et al. 2021, Table 3).
 
 Data: clean windows (the grid's ``window``, seconds; 2 s) at 30 fps of the test motions
 (:class:`benchmark.protocols.motion_fit.MotionSource`), ground truth posed on the body with each

@@ -1,8 +1,8 @@
 """The completion protocol (table1) on captured scans: ``run table1 --data scans=DIR``.
 
 The same windows, degradation, fit and scores as on the synthetic data (completion_unit.py), with
-the capture taking the place of the synthesised one. The rules specific to captures (PROTOCOL
-terms; the README's "Your own captures" repeats them):
+the capture taking the place of the synthesised one. The rules specific to captures (docs/protocol.md
+states them; docs/captures.md repeats them for users):
 
 - Window: the 4 s window starts at the capture frame nearest to the first timestamp plus the
   spec's ``window_start_s``; a sequence whose frames do not reach the last output timestamp
@@ -41,7 +41,11 @@ TIME_MATCH_S = 1e-6
 
 
 def load_scan_sequences(spec: dict, data: str) -> dict:
-    """The usable scan sequences of ``--data scans=DIR[?up=..&units=..]`` by id (see module doc)."""
+    """The usable scan sequences of ``--data scans=DIR[?up=..&units=..]`` by id (see module doc).
+
+    Every frame file of every sequence is read and checked here (:meth:`ScanSequence.validate`:
+    parse, point count, finite, coordinates, a person's height; timestamps' rate and span), so a
+    bad capture is one error naming its file before the run plans or starts any work unit."""
     root, options = parse_scan_data(data)
     found = find_scan_sequences(root, up=options.get("up", "y"), units=options.get("units", "m"),
                                 fps=options.get("fps"))

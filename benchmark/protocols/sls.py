@@ -1,7 +1,7 @@
-"""The ``sls`` protocol: completion with landmarks of one-cycle sequences (PROTOCOL.md "sls").
+"""The ``sls`` protocol: completion with landmarks of one-cycle sequences (docs/protocol.md, "sls").
 
 Paper: Marsot, Wuhrer, Franco, Durocher, "A structured latent space for human body motion
-generation" (3DV 2022; seeds/001, section 5, Table 1). Rules written here where the paper is
+generation" (3DV 2022; paper 001, section 5, Table 1). Rules written here where the paper is
 silent are the project's; ``benchmark/tables/sls.yaml`` states them as data.
 
 Data (:func:`load_motions`, :class:`SlsData`)

@@ -4,7 +4,7 @@ After the facing is found (:mod:`benchmark.protocols.completion`), a per-frame p
 are per observed frame and that can express a pose in them tries, per observed frame, limb start
 hypotheses in stages (arms, legs, the neighbouring frames' poses), each fitted briefly on the facing
 search's subset; each frame keeps its best by data term. From the T-pose, no-prior's fits folded
-the forearms into local minima of the data term (table1.yaml, version 4).
+the forearms into local minima of the data term (docs/protocol.md, table1 version 4).
 """
 
 from __future__ import annotations

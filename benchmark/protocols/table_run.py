@@ -11,7 +11,9 @@ log = logging.getLogger(__name__)
 
 
 def load_motions(data: str | None, min_duration: float, body=None) -> dict:
-    """Test motions by id: the synthetic test split by default, or a folder of motion files."""
+    """Test motions by id: the synthetic test split by default, or a folder of motion files (each
+    checked by its loader: :mod:`benchmark.plausibility`)."""
+    files_by_id = {}
     if data is None:
         from benchmark.synthetic.splits import build_split
 
@@ -44,28 +46,33 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
                     f"{f}: no field {exc} (fields present: {sorted(keys)})"
                 raise ValueError(f"--data {data}: {text}; convert the file with "
                                  "`python -m benchmark data convert FILE --out FILE.npz`") from None
-            by_id[str(f.relative_to(root) if root.is_dir() else f.name)] = m
+            key = str(f.relative_to(root) if root.is_dir() else f.name)
+            by_id[key], files_by_id[key] = m, str(f)
     if body is not None:
-        by_id = {k: _shape_for_body(m, body) for k, m in by_id.items()}
+        by_id = {k: _shape_for_body(m, body, files_by_id.get(k)) for k, m in by_id.items()}
     short = [k for k, m in by_id.items() if m.duration + 1e-6 < min_duration]
     if short:
         log.warning("skipping %d motions shorter than the %.1f s window: %s", len(short), min_duration, short[:5])
     return {k: m for k, m in by_id.items() if k not in short}
 
 
-def _shape_for_body(motion, body):
+def _shape_for_body(motion, body, where: str | None = None):
     """Keep a motion's shape when it belongs to this body family; SMPL betas are truncated or
-    zero-padded to the body's count; a shape of another body is replaced by the neutral shape."""
+    zero-padded to the body's count; a shape of another body is replaced by the neutral shape.
+    The length is checked first (:func:`benchmark.plausibility.check_shape`: an implausible one is
+    an error naming ``where``, the motion's file; default its source)."""
     import dataclasses
 
     import torch
 
+    from benchmark.plausibility import SMPL_FAMILY, check_shape, shape_family
+
     if motion.shape is None:
         return motion
-    smpl_family = {"smpl", "smplh", "smplx"}
-    src = (motion.body or "").lower().split("-")[0]
-    kind = str(getattr(body, "model_type", None) or body.name).lower().split("-")[0]  # "smplh-female" -> "smplh"
-    if src == kind or (src in smpl_family and kind in smpl_family):
+    src = shape_family(motion.body)
+    kind = shape_family(str(getattr(body, "model_type", None) or body.name))  # "smplh-female" -> "smplh"
+    if src == kind or (src in SMPL_FAMILY and kind in SMPL_FAMILY):
+        check_shape(motion.shape, where or motion.source or "motion", body.name, kind, body.shape_dim)
         s = motion.shape.reshape(-1)[: body.shape_dim]
         s = torch.cat([s, s.new_zeros(body.shape_dim - s.numel())])
         return dataclasses.replace(motion, shape=s, body=body.name)

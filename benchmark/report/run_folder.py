@@ -41,6 +41,9 @@ def load_run(path) -> RunFolder:
     Raises FileNotFoundError naming the folder and the fix when there is no table JSON.
     """
     root = Path(path)
+    if root.is_file():
+        raise FileNotFoundError(f"report: {root} is a file, not a run folder; pass the folder that holds it "
+                                f"({root.parent}), the --out of 'python -m benchmark run'")
     if not root.is_dir():
         raise FileNotFoundError(f"report: run folder {root} does not exist (give the --out folder of "
                                 f"'python -m benchmark run TABLE', default runs/latest)")

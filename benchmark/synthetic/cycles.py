@@ -1,6 +1,6 @@
 """One-motion-cycle windows cut out of motion sequences, 100 anchors each (structured latent, sls).
 
-Marsot et al. (3DV 2022, seeds/001 §4.1) model motions "during which the hip performs a cycle",
+Marsot et al. (3DV 2022, paper 001 §4.1) model motions "during which the hip performs a cycle",
 0.3-3 s long, each resampled to n = 100 anchor frames uniformly spaced in time. They found the
 cycles in AMASS by dynamic time warping against two hand-made gait templates (one starting with
 each foot). The synthetic generator knows its phases, so no template matching is needed here:

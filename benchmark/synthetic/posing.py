@@ -1,6 +1,6 @@
 """Anatomical joint angles -> SMPL-22 local rotation matrices (the generator's pose vocabulary).
 
-Local rotations follow the SMPL convention (PROTOCOL.md): relative to a T-pose whose joint
+Local rotations follow the SMPL convention (docs/protocol.md): relative to a T-pose whose joint
 frames are aligned with the world axes (y up, facing +z, left at +x). The angles below are
 anatomical and mirror-symmetric: a positive value means the same movement on either side.
 

@@ -7,6 +7,8 @@ Each selected test sequence becomes one folder in the layout :mod:`benchmark.loa
     OUT/<sequence>/ground_truth/motion.npz   the generating motion (harness .npz) for the window;
                                         loaders never read it (it is in a sub-folder), ``complete``
                                         uses it for diagnostics against the truth
+    OUT/.benchmark-output.json          the marker: written by make-scans, and which sequence
+                                        folders; ``--force`` replaces only such a folder's sequences
 
 Frames: ``points`` points per frame after the holes, sampled uniformly over the generator's posed
 mesh (``benchmark.observations.make_scans``) with i.i.d. Gaussian noise of ``noise_mm`` per axis;
@@ -19,13 +21,14 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import shutil
 from pathlib import Path
 
 import numpy as np
 import torch
 
 log = logging.getLogger(__name__)
+
+COMMAND = "data make-scans"
 
 
 def write_ply_points(path: Path, points: np.ndarray) -> None:
@@ -88,19 +91,29 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
     """
     from benchmark.loaders.scans import UNITS, Z_UP_TO_Y_UP
     from benchmark.observations import make_scans
+    from benchmark.outdir import check_not_overlapping, claim_out_dir, remove_entries, write_marker
     from benchmark.protocols.completion_unit import stable_seed
     from benchmark.protocols.table_run import select_sequences
-    from benchmark.synthetic.splits import build_split
+    from benchmark.synthetic.splits import build_split, cache_dir
 
+    # every argument is checked before anything in `out` is touched; then only an earlier
+    # make-scans output is replaced (its marker lists it; benchmark.outdir.claim_out_dir)
     if not 0.0 <= holes < 1.0:
         raise ValueError(f"holes must be a fraction in [0, 1), got {holes}")
     if units not in UNITS or up not in ("y", "z"):
         raise ValueError(f"units must be one of {list(UNITS)} and up one of y, z; got {units!r}, {up!r}")
-    out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise FileExistsError(f"{out} exists and is not empty; pass --force to replace it")
-        shutil.rmtree(out)
+    for name, value, ok, rule in (("fps", fps, fps > 0, "> 0"), ("points", points, points >= 1, ">= 1"),
+                                  ("noise_mm", noise_mm, noise_mm >= 0, ">= 0"), ("duration", duration, duration > 0, "> 0")):
+        if not ok:
+            raise ValueError(f"{name} must be {rule}, got {value}")
+    if isinstance(sequences, (list, tuple)):
+        if not sequences:
+            raise ValueError("sequences: give at least one test sequence id")
+    elif sequences != "all" and int(sequences) < 1:
+        raise ValueError(f"sequences must be >= 1, got {sequences}")
+    split_cache = cache_dir("test")
+    check_not_overlapping(out, [("synthetic split cache", split_cache.parent)])
+    out, earlier = claim_out_dir(out, COMMAND, overwrite)
     if body is None:
         from benchmark.body import get_body
 
@@ -110,6 +123,9 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
     unknown = [i for i in ids if i not in by_id]
     if unknown:
         raise KeyError(f"unknown test sequence ids {unknown[:3]}; e.g. {sorted(by_id)[:2]}")
+    names = [folder_name(sid) for sid in ids]
+    if len(set(names)) != len(names):
+        raise ValueError(f"sequences: an id is given twice ({[n for n in names if names.count(n) > 1][0]})")
     sampled = int(round(points / (1.0 - holes)))
     if table_capture is not None:
         from benchmark.catalog import load_table_spec
@@ -119,6 +135,15 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
             raise ValueError("table_capture: table1's window_start_s is not 0; not supported")
         fps, sampled, noise_mm, holes, duration = (float(d["capture_fps"]), int(d["points_per_frame"]),
                                                    1000.0 * float(d.get("scan_noise_std", 0.0)), 0.0, float(d["window_s"]))
+    frames = int(round(duration * fps))
+    if frames < 1:
+        raise ValueError(f"duration {duration:g} s at {fps:g} fps gives no frame; give a longer duration or a higher fps")
+    short = [(sid, by_id[sid].duration) for sid in ids if (frames - 1) / fps > by_id[sid].duration + 1e-6]
+    if short:
+        raise ValueError(f"duration {duration:g} s: sequence {short[0][0]} lasts only {short[0][1]:.3f} s; give a "
+                         f"duration of at most {min(d for _, d in short):.2f} s")
+    remove_entries(out, earlier)
+    write_marker(out, COMMAND, names)
     written = []
     for sid in ids:
         motion = by_id[sid]
@@ -149,28 +174,32 @@ def add_make_scans_command(dsub) -> None:
     """Registers ``data make-scans`` on the ``data`` command's sub-parsers."""
     import argparse
 
+    from benchmark import argtypes as at
+
     c = dsub.add_parser("make-scans", help="write captured-like scan folders (PLY + timestamps) from the synthetic test split",
                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     c.add_argument("--out", required=True, help="output folder, one sub-folder per sequence")
-    c.add_argument("--sequences", type=int, default=4, help="how many test sequences (the profiles' selection)")
+    c.add_argument("--sequences", type=at.positive_int, default=4, help="how many test sequences (the profiles' selection)")
     c.add_argument("--ids", nargs="+", default=None, help="explicit test sequence ids instead of --sequences")
-    c.add_argument("--fps", type=float, default=60.0, help="capture rate")
-    c.add_argument("--points", type=int, default=10000, help="points per frame (after the holes)")
-    c.add_argument("--noise-mm", type=float, default=3.0, help="Gaussian noise per axis, mm")
-    c.add_argument("--holes", type=float, default=0.1, help="fraction of each frame's surface cut away")
-    c.add_argument("--duration", type=float, default=4.0, help="seconds per sequence")
-    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--fps", type=at.fps, default=60.0, help="capture rate")
+    c.add_argument("--points", type=at.points, default=10000, help="points per frame (after the holes)")
+    c.add_argument("--noise-mm", type=at.Number(float, 0.0, 1000.0, unit="mm"), default=3.0, help="Gaussian noise per axis, mm")
+    c.add_argument("--holes", type=at.fraction, default=0.1, help="fraction of each frame's surface cut away")
+    c.add_argument("--duration", type=at.positive_float, default=4.0,
+                   help="seconds per sequence (at most the sequences' length, 4.4 s)")
+    c.add_argument("--seed", type=at.seed, default=0)
     c.add_argument("--up", choices=["y", "z"], default="y", help="up axis to write")
     c.add_argument("--units", choices=["m", "cm", "mm"], default="m", help="units to write")
-    c.add_argument("--table-capture", type=int, default=None, metavar="SEED",
+    c.add_argument("--table-capture", type=at.seed, default=None, metavar="SEED",
                    help="write the capture `run table1 --seed SEED` synthesises (its rate, points and seeds; "
                         "no noise, no holes): the scan path's check against the synthetic run")
-    c.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    c.add_argument("--force", action="store_true",
+                   help="replace the output of an earlier make-scans in --out (a folder holding anything else is refused)")
     c.set_defaults(func=_cmd_make_scans)
 
 
 def _cmd_make_scans(args) -> int:
-    written = make_scan_set(args.out, sequences=args.ids or args.sequences, fps=args.fps, points=args.points,
+    written = make_scan_set(args.out, sequences=args.ids if args.ids is not None else args.sequences, fps=args.fps, points=args.points,
                             noise_mm=args.noise_mm, holes=args.holes, duration=args.duration, seed=args.seed,
                             up=args.up, units=args.units, overwrite=args.force,
                             table_capture=args.table_capture)

@@ -79,7 +79,7 @@ class Subject:
                 "style": asdict(self.style)}
 
 
-# The test subjects mirror the paper's test set (PROTOCOL.md, table1): 2 male, 2 female, of
+# The test subjects mirror the paper's test set (datasets/synthetic.md): 2 male, 2 female, of
 # different heights and weights. Standing heights on the embedded Anny body: 1.86 m, 1.70 m,
 # 1.69 m, 1.56 m.
 TEST_SUBJECTS = (

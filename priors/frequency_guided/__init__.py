@@ -1,6 +1,6 @@
 """The frequency-guided motion prior of Xu et al., "Exploring versatile prior for human motion via
 motion frequency guidance" (3DV 2021; code ``JchenXu/human-motion-prior``, MIT), as the prior
-``frequency-guided`` (see /work/shared/priors.md section 2).
+``frequency-guided`` (summary: docs/priors.md).
 
 What it models: one 128-frame window at 30 fps (4.27 s) as one latent z. The decoder turns z into
 one VPoser **v1.0** code (32-D) per frame plus a root orientation per frame in 6D; the body pose of

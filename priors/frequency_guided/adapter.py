@@ -159,5 +159,5 @@ class FrequencyGuidedPrior(PriorAdapter):
         from priors.frequency_guided.train import train_frequency_guided
 
         out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
-        _, record = train_frequency_guided(out, seed=seed, **({"steps": int(steps)} if steps else {}))
+        _, record = train_frequency_guided(out, seed=seed, **({"steps": int(steps)} if steps is not None else {}))
         return record

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import torch
 
+from benchmark.safe_loading import torch_load_weights
 from priors.vposer.checkpoint import (
     V1_WHERE_TO_GET as VPOSER_V1_WHERE,
     is_vposer_v1_state,
@@ -150,7 +151,7 @@ def load_project_checkpoint(path: str | Path) -> FrequencyGuidedNetwork:
     path = Path(path)
     if path.is_dir() or "," in str(path):
         raise ValueError(f"{path} looks like the official release: load it with size='paper'; size 'embedded' reads {DEFAULT_WEIGHTS.name}")
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    ckpt = torch_load_weights(path, f"retrain: {TRAIN_COMMAND}")
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict) or not isinstance(ckpt.get("config"), dict):
         raise ValueError(f"{path}: expected {{'state_dict', 'config'}} written by priors.frequency_guided.train.train_frequency_guided; retrain: {TRAIN_COMMAND}")
     cfg = ckpt["config"]

@@ -249,9 +249,11 @@ def train_frequency_guided(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.frequency_guided.train --out priors/weights``: train the embedded weights."""
+    from benchmark import argtypes as at
+
     ap = training.recipe_parser("Train the embedded frequency-guided prior on the synthetic training split.",
                                 DEFAULT_WEIGHTS, DEFAULT_STEPS)
-    ap.add_argument("--vposer-steps", type=int, default=DEFAULT_VPOSER_STEPS, help="VPoser v1 steps (default: %(default)s)")
+    ap.add_argument("--vposer-steps", type=at.positive_int, default=DEFAULT_VPOSER_STEPS, help="VPoser v1 steps (default: %(default)s)")
     args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
     _, rec = train_frequency_guided(args.out, steps=args.steps, seed=args.seed, vposer_steps=args.vposer_steps)
     print({k: rec[k] for k in ("train_wall_s", "final_train", "final_val", "checkpoint_bytes")})

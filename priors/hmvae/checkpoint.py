@@ -47,6 +47,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from benchmark.safe_loading import UnsafeFileError, torch_load_weights
 from priors.hmvae.model import PAPER_CONFIG, HMVAE, HMVAEConfig
 from priors.hmvae.skeleton import PARENTS24, frozen_parameter_names
 from priors.hmvae.trajectory import PAPER_TRAJECTORY_CONFIG, TrajectoryConfig, TrajectoryModel
@@ -147,7 +148,9 @@ def resolve_paper_weights(spec: str | Path, need_trajectory: bool) -> PaperFiles
 
 def _torch_load(file: Path) -> object:
     try:
-        return torch.load(file, map_location="cpu", weights_only=True)
+        return torch_load_weights(file, "re-save the weights only: torch.save({'state_dict': model.state_dict()}, path)")
+    except UnsafeFileError:
+        raise
     except pickle.UnpicklingError as exc:
         raise ValueError(
             f"{file}: cannot be read as a plain tensor checkpoint ({str(exc).splitlines()[0]}); expected "
@@ -155,6 +158,15 @@ def _torch_load(file: Path) -> object:
         ) from exc
     except Exception as exc:
         raise ValueError(f"{file}: not a torch checkpoint ({type(exc).__name__}: {exc})") from exc
+
+
+def _load_plain_array(file: Path) -> np.ndarray:
+    """A numeric ``.npy`` array of the official release, read without pickle."""
+    try:
+        return np.load(file, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:  # object arrays (pickled), truncated or not an .npy
+        raise ValueError(f"{file}: not a plain numeric .npy array, read without pickle ({exc}); use the file of "
+                         "the official repository (lijiaman/hm-vae utils/data/)") from None
 
 
 def _state_dict_of(ckpt: object, file: Path, what: str) -> dict:
@@ -247,10 +259,10 @@ def load_official_trajectory(files: PaperFiles) -> tuple[TrajectoryModel, LoadRe
     sd = _state_dict_of(_torch_load(file), file, "HM-VAE trajectory")
     model = TrajectoryModel(TrajectoryConfig(**{**PAPER_TRAJECTORY_CONFIG.to_dict(), "world_up": "z"}))
     loaded = load_strict(model, sd, file, "HM-VAE trajectory model")
-    ms = np.load(files.mean_std)
+    ms = _load_plain_array(files.mean_std)
     if ms.ndim != 2 or ms.shape[0] != 2 or ms.shape[1] < VEL_DIMS.stop:
         raise ValueError(f"{files.mean_std}: expected the official (2, 579) mean/std array, got shape {ms.shape}")
-    off = np.load(files.offsets)
+    off = _load_plain_array(files.offsets)
     if off.shape != (len(PARENTS24), 3):
         raise ValueError(f"{files.offsets}: expected (24, 3) skeleton offsets, got shape {off.shape}")
     rest = np.zeros_like(off)

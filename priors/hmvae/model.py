@@ -26,13 +26,13 @@ Decoder (block k = 0..3 mirrors encoder level l = 3 - k):
 Sizes (``PAPER_CONFIG``, len-64 model of ``configs/len_64_test_interpolation.yaml``): k = 15,
 C = (6, 12, 24, 48, 96), strides (2, 2, 2, 2), T = 64, 32, 16, 8, 4; latent_d = 24 (z_g: 7 x 24),
 shallow_latent_d = 12 (z_l: 14 x 12); 13,233,480 stored weights (the masked conv weights counted in
-full, = the "13.2 M" dense-equivalent of priors.md), of which 10,457,880 can be non-zero under the
+full, = the "13.2 M" dense-equivalent of docs/priors.md), of which 10,457,880 can be non-zero under the
 distance-2 masks; the frozen masks and pooling/unpooling matrices add 14,713,344 stored numbers, so
 the raw ``nn.Parameter`` count is 27,946,824 (see :func:`parameter_summary`). Embedded size: see
 :mod:`priors.hmvae.train` (kernel 7, channels (6, 8, 16, 32, 64): 2,984,600 weights).
 Note: the released *training* config ``configs/len64_no_aug_hm_vae.yaml`` says
 ``shallow_latent_d: 24``, while the test/interpolation config (the one the completion code loads
-the trained model with) says 12; we follow priors.md and the test config (12).
+the trained model with) says 12; we follow the test config (12).
 ``LEN8_CONFIG``: the video-refinement model (k = 3, latents 6/6, strides 1, 2, 2, 1, T = 8, 8, 4,
 2, 2; no upsampling in decoder blocks 0 and 3, so those blocks' module indices shift by one).
 

@@ -326,7 +326,7 @@ def train_embedded(out_dir=None, steps: int | None = None, seed: int = 0, overwr
     existing = [str(t) for t in targets if t.exists()]
     if existing and not overwrite:
         raise FileExistsError(f"{existing} exist: pass --force to overwrite them, or --out DIR to write elsewhere")
-    vae_steps = int(steps) if steps else VAE_STEPS
+    vae_steps = VAE_STEPS if steps is None else int(steps)
     traj_steps = max(1, round(vae_steps * TRAJ_STEPS / VAE_STEPS))
     rest = training.fixed_rest_skeleton()[0]
     _, rec_vae = train_hmvae(out, steps=vae_steps, seed=seed, rest=rest)
@@ -338,10 +338,12 @@ def main(argv: list[str] | None = None) -> None:
     """``python -m priors.hmvae.train --out priors/weights [--steps N] [--seed S] [--force]``."""
     import argparse
 
+    from benchmark import argtypes as at
+
     ap = argparse.ArgumentParser(description="Train the embedded HM-VAE and trajectory model on the synthetic split.")
     ap.add_argument("--out", default=str(training.WEIGHTS_DIR))
-    ap.add_argument("--steps", type=int, default=None, help=f"VAE steps (default {VAE_STEPS}; trajectory scaled)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--steps", type=at.positive_int, default=None, help=f"VAE steps (default {VAE_STEPS}; trajectory scaled)")
+    ap.add_argument("--seed", type=at.seed, default=0)
     ap.add_argument("--force", action="store_true", help="overwrite existing weights")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")

@@ -1,5 +1,5 @@
 """Motion-DVAE (Fiche et al., "Motion-DVAE: Unsupervised learning for fast human motion denoising",
-ACM MIG 2023, arXiv 2306.05846; paper 003 in /work/shared/seeds, reference: priors.md section 6).
+ACM MIG 2023, arXiv 2306.05846; paper 003 of docs/protocol.md; summary: docs/priors.md).
 
 The formulas of our copy of the paper were lost in conversion; everything below that the text does
 not state is marked **[inferred]** and is this project's reconstruction.

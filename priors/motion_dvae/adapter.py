@@ -279,7 +279,7 @@ class MotionDVAEPrior(PriorAdapter):
 
         out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
         kw = {}
-        if steps:
+        if steps is not None:
             kw = {"steps": int(steps), "denoise_steps": max(1, 2 * int(steps) // 5)}
         _, record = train_motion_dvae(out, seed=seed, **kw)
         return record

@@ -7,6 +7,7 @@ from typing import Callable
 
 import torch
 
+from benchmark.safe_loading import STATE_DICT_FIX, UnsafeFileError, torch_load_weights
 from priors.motion_dvae.model import FPS, MotionDVAE, PAPER_CONFIG
 
 
@@ -23,7 +24,7 @@ OFFICIAL_UNKNOWN = (
 def read_project_checkpoint(path: str | Path) -> tuple[dict, dict]:
     """(state_dict, config) of a project checkpoint ``priors/weights/motion_dvae.pt``, strictly checked."""
     path = Path(path)
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    ckpt = torch_load_weights(path, f"retrain with `{TRAIN_COMMAND}`")
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict) or not isinstance(ckpt.get("config"), dict):
         top = sorted(ckpt)[:20] if isinstance(ckpt, dict) else type(ckpt).__name__
         raise ValueError(f"{path}: not a motion-dvae project checkpoint: expected {{'state_dict', 'config'}}, found {top}; "
@@ -84,7 +85,9 @@ def load_official(path: str | Path, model: MotionDVAE | None = None,
         raise FileNotFoundError(f"motion-dvae official weights: {path} does not exist ({OFFICIAL_UNKNOWN})")
     model = model if model is not None else MotionDVAE(**PAPER_CONFIG)
     try:
-        raw = torch.load(path, map_location="cpu", weights_only=True)
+        raw = torch_load_weights(path, STATE_DICT_FIX)
+    except UnsafeFileError:
+        raise
     except Exception as exc:
         raise NotImplementedError(f"{path}: cannot read it as a torch weights file ({type(exc).__name__}: {exc}); "
                                   f"{OFFICIAL_UNKNOWN}") from exc

@@ -333,16 +333,20 @@ def train_motion_dvae(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.motion_dvae.train --out priors/weights``: train the embedded weights."""
-    ap = training.recipe_parser("Train the embedded Motion-DVAE on the synthetic training split.", DEFAULT_WEIGHTS, 1800)
-    ap.add_argument("--denoise-steps", type=int, default=720)
+    from benchmark import argtypes as at
+
+    # steps / denoise steps 0: skip that phase (needs --init)
+    ap = training.recipe_parser("Train the embedded Motion-DVAE on the synthetic training split.", DEFAULT_WEIGHTS, 1800,
+                                min_steps=0)
+    ap.add_argument("--denoise-steps", type=at.non_negative_int, default=720)
     ap.add_argument("--init", default=None, help="warm start phase 1 from this motion_dvae.pt (DVAE and statistics)")
-    ap.add_argument("--lr", type=float, default=1e-3, help="phase-1 learning rate")
-    ap.add_argument("--denoise-lr", type=float, default=1e-3, help="phase-2 learning rate")
+    ap.add_argument("--lr", type=at.positive_float, default=1e-3, help="phase-1 learning rate")
+    ap.add_argument("--denoise-lr", type=at.positive_float, default=1e-3, help="phase-2 learning rate")
     ap.add_argument("--encoder-only", action="store_true",
                     help="phase 1 trains the clean encoder only (the generative model of --init stays as it is)")
-    ap.add_argument("--encoder-point-weight", type=float, default=None,
+    ap.add_argument("--encoder-point-weight", type=at.non_negative_float, default=None,
                     help="with --encoder-only: the point-error weight of the clean encoder's loss (default: the DVAE's)")
-    ap.add_argument("--encoder-root-marker", type=float, default=0.0, metavar="M",
+    ap.add_argument("--encoder-root-marker", type=at.non_negative_float, default=0.0, metavar="M",
                     help="with --encoder-only: two extra markers M metres along the root's x and z axes in the clean "
                          "encoder's point loss (weighs the root heading like a lever of M metres)")
     ap.add_argument("--encoder-residual", action=argparse.BooleanOptionalAction, default=None,
@@ -352,7 +356,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--denoise-from", default=None, help="phase 2 starts from the denoising networks of this motion_dvae.pt")
     ap.add_argument("--checkpoint-dir", default=None,
                     help="save the resumable training state here every --checkpoint-every steps (--resume continues it)")
-    ap.add_argument("--checkpoint-every", type=int, default=200)
+    ap.add_argument("--checkpoint-every", type=at.positive_int, default=200)
     ap.add_argument("--resume", action="store_true")
     args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
     if args.resume and not (args.checkpoint_dir and Path(args.checkpoint_dir).exists()):

@@ -4,7 +4,7 @@ A motion of any duration and frame rate is encoded into a sequence of m = 8 late
 z_1..z_m (D = 256 in the paper); a temporally implicit decoder D(z_i, beta, tau) decodes each
 primitive into a segment (pose, translation, duration, rigid transform) and the segments are
 blended with Gaussian temporal masks into a motion that can be queried at any timestamp
-(see /work/shared/priors.md section 5; paper sections 4 and 5).
+(summary: docs/priors.md; paper sections 4 and 5).
 
 Parts of this module
 --------------------

@@ -225,7 +225,7 @@ class SequentialPrimitivesPrior(PriorAdapter):
 
         out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
         kw = {}
-        if steps:
+        if steps is not None:
             kw = {"steps": int(steps), "point_steps": max(1, round(int(steps) * DEFAULT_POINT_STEPS / DEFAULT_STEPS))}
         _, record = train_sequential_primitives(out, seed=seed, **kw)
         return record

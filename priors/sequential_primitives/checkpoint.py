@@ -10,6 +10,7 @@ from pathlib import Path
 
 import torch
 
+from benchmark.safe_loading import UnsafeFileError, torch_load_weights
 from priors.sequential_primitives.model import ARCH_KEYS, FORMAT, SequentialPrimitives
 
 
@@ -37,7 +38,9 @@ def read_checkpoint(file: str | Path) -> dict:
     if not file.exists():
         raise FileNotFoundError(f"sequential-primitives weights not found: {file}")
     try:
-        ckpt = torch.load(file, map_location="cpu", weights_only=True)
+        ckpt = torch_load_weights(file, "retrain with `python -m benchmark train sequential-primitives`")
+    except UnsafeFileError:
+        raise
     except Exception as exc:
         raise ValueError(
             f"{file}: not readable as a sequential-primitives project checkpoint ({type(exc).__name__}: "

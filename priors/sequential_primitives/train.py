@@ -435,9 +435,11 @@ def train_sequential_primitives(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.sequential_primitives.train --out priors/weights``: train the embedded weights."""
+    from benchmark import argtypes as at
+
     ap = training.recipe_parser("Train the embedded sequential-primitives prior on the synthetic split.",
                                 DEFAULT_WEIGHTS, DEFAULT_STEPS)
-    ap.add_argument("--point-steps", type=int, default=DEFAULT_POINT_STEPS)
+    ap.add_argument("--point-steps", type=at.positive_int, default=DEFAULT_POINT_STEPS)
     args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
     _, rec = train_sequential_primitives(args.out, steps=args.steps, point_steps=args.point_steps, seed=args.seed)
     print({k: rec[k] for k in ("train_wall_s", "final_train", "final_val", "point_final_val", "checkpoint_bytes")})

@@ -1,5 +1,5 @@
 """Marsot, Wuhrer, Franco, Durocher: "A structured latent space for human body motion generation"
-(3DV 2022; seeds/001_531b07df66cbbe2e.txt), as the registered prior ``structured-latent``.
+(3DV 2022; paper 001 of docs/protocol.md), as the registered prior ``structured-latent``.
 
 The official code (gitlab.inria.fr/mmarsot/a-structured-latent-space) is not reachable: the paper is
 the specification; everything it leaves open is chosen here, stated below and configurable.

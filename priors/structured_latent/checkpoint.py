@@ -7,6 +7,7 @@ from pathlib import Path
 
 import torch
 
+from benchmark.safe_loading import UnsafeFileError, torch_load_weights
 from priors.structured_latent.model import StructuredLatentCVAE
 
 CHECKPOINT_NAME = "structured_latent.pt"
@@ -32,7 +33,9 @@ def load_checkpoint(path: str | Path) -> tuple[StructuredLatentCVAE, dict]:
     network must be present with its shape and nothing else may be (errors name the file and key)."""
     path = Path(path)
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        ckpt = torch_load_weights(path, f"retrain with `{TRAIN_COMMAND}`")
+    except UnsafeFileError:
+        raise
     except Exception as exc:
         raise ValueError(f"{path}: not a readable structured-latent checkpoint ({type(exc).__name__}: {exc}); "
                          f"retrain with `{TRAIN_COMMAND}`") from exc

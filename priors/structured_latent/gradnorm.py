@@ -1,7 +1,7 @@
 """GradNorm (Chen, Badrinarayanan, Lee, Rabinovich, ICML 2018): adaptive weights of loss terms.
 
 Marsot et al. weigh their partial reconstruction losses (pose / translation / time, then mesh /
-time) with GradNorm, weights initialised to 1.0 (seeds/001 §3.3, Supp. §2). One step, for losses
+time) with GradNorm, weights initialised to 1.0 (paper 001 §3.3, Supp. §2). One step, for losses
 L_i and weights w_i (T terms):
 
     G_i    = || d(w_i L_i) / dW ||_2          W = the network's last shared layer (see below)

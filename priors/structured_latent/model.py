@@ -1,4 +1,4 @@
-"""The CVAE of Marsot et al. (3DV 2022, seeds/001 §3.2): E(chi) -> (mu, sigma), D(z, beta) -> chi_hat.
+"""The CVAE of Marsot et al. (3DV 2022, paper 001 §3.2): E(chi) -> (mu, sigma), D(z, beta) -> chi_hat.
 
 The paper gives the CVAE structure (encoder not conditioned on beta, decoder conditioned on beta,
 z = mu + eps * sigma), dim(z) = 64 (256 for its CHUM comparison) and dim(beta) = 8, but no layer

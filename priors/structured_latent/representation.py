@@ -1,4 +1,4 @@
-"""The motion representation chi of Marsot et al. (3DV 2022, seeds/001 §3.1, Supp. §1-2).
+"""The motion representation chi of Marsot et al. (3DV 2022, paper 001 §3.1, Supp. §1-2).
 
 One motion = n = 100 timestamped anchor frames; per anchor (124 numbers, in this order):
 

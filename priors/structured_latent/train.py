@@ -1,4 +1,4 @@
-"""Training the structured latent space in the paper's two phases (seeds/001 §3.3, Supp. §2).
+"""Training the structured latent space in the paper's two phases (paper 001 §3.3, Supp. §2).
 
 Data (:func:`build_anchor_data`): every motion of the synthetic train split is cut into
 one-cycle windows by :func:`benchmark.synthetic.cycles.find_cycles` (0.3-3 s, the generator's own

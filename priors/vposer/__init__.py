@@ -1,6 +1,6 @@
 """VPoser V02_05 (Pavlakos et al. 2019, ``nghorbani/human_body_prior``) and the VPoser+SLERP prior.
 
-Three parts (see /work/shared/priors.md section 1):
+Three parts (summary: docs/priors.md):
 
 1. :class:`VPoser`: the V02_05 network, layer for layer (so the official keys map one to one).
    Paper size ``hidden=512, latent=32`` has 936,252 parameters.
@@ -38,7 +38,7 @@ VPoser v1.0 (``nghorbani/human_body_prior``, branch ``cvpr19``), the pose code o
 The frequency-guided motion prior (:mod:`priors.frequency_guided`) decodes a motion into one
 32-D VPoser **v1.0** code per frame; the body pose is that code through the VPoser v1.0 decoder.
 v1.0 differs from V02_05 (above) in layer names, activations and layout, and the
-two checkpoints are not interchangeable (/work/shared/priors.md section 1c, 1d).
+two checkpoints are not interchangeable (docs/priors.md).
 
 Network (``human_body_prior@cvpr19: human_body_prior/train/vposer_smpl.py``; paper size
 ``hidden=512, latent=32``, 673,596 parameters), layers directly on the module (so the state-dict

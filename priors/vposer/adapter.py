@@ -90,7 +90,7 @@ class VPoserSlerp(PriorAdapter):
         from priors.vposer.train import train_vposer
 
         out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
-        _, record = train_vposer(out, seed=seed, **({"steps": int(steps)} if steps else {}))
+        _, record = train_vposer(out, seed=seed, **({"steps": int(steps)} if steps is not None else {}))
         return record
 
     def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:

@@ -6,14 +6,18 @@
 from __future__ import annotations
 
 import logging
-import pickle
 import re
-import types
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
+from benchmark.safe_loading import (
+    STATE_DICT_FIX,
+    is_lightning_bookkeeping,
+    torch_load_weights,
+    torch_load_with_stand_ins,
+)
 from priors.vposer.model import VPoser, VPoserV1
 
 log = logging.getLogger(__name__)
@@ -84,42 +88,24 @@ def resolve_checkpoint(path: str | Path) -> tuple[Path, str]:
     return best, why
 
 
-class _Stub:
-    """Stands in for a pickled class that cannot be imported (e.g. OmegaConf in Lightning's hparams)."""
-
-    def __init__(self, *args, **kwargs):
-        pass
-
-    def __setstate__(self, state):
-        self.__dict__["_state"] = state
-
-
-class _TolerantUnpickler(pickle.Unpickler):
-    def find_class(self, module, name):
-        try:
-            return super().find_class(module, name)
-        except (ImportError, AttributeError):
-            return type(name, (_Stub,), {"__module__": module})
-
-
-_tolerant_pickle = types.SimpleNamespace(
-    Unpickler=_TolerantUnpickler,
-    load=lambda f, **kw: _TolerantUnpickler(f, **kw).load(),
-    __name__="tolerant_pickle",
+OFFICIAL_FIX = (
+    "if you trust the file, load it in Python yourself and re-save only its tensors, "
+    "torch.save({'state_dict': ckpt['state_dict']}, 'V02_05_epoch=13_weights.ckpt'), then pass that file"
 )
 
 
 def _torch_load(file: Path) -> object:
-    """torch.load on CPU: weights_only first; a Lightning checkpoint that pickles other objects
-    (hyper-parameters) is then read with a full unpickler that stubs classes it cannot import."""
-    try:
-        return torch.load(file, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as exc:
+    """torch.load on CPU with ``weights_only=True``. The bookkeeping a Lightning checkpoint pickles
+    besides its tensors (callback classes, OmegaConf hyper-parameters) is read as inert stand-ins
+    (:func:`benchmark.safe_loading.is_lightning_bookkeeping`) and ignored; any other global is refused
+    (:class:`benchmark.safe_loading.UnsafeFileError`)."""
+    ckpt, stand_ins = torch_load_with_stand_ins(file, is_lightning_bookkeeping, OFFICIAL_FIX)
+    if stand_ins:
         log.warning(
-            "%s: not loadable with weights_only=True (%s); reading it with the full unpickler "
-            "(only its state_dict tensors are used)", file, str(exc).splitlines()[0]
+            "%s: holds Lightning bookkeeping that plain weights_only=True loading refuses (%s); read as inert "
+            "stand-ins (never called) and ignored: only its state_dict tensors are used", file, ", ".join(stand_ins)
         )
-        return torch.load(file, map_location="cpu", weights_only=False, pickle_module=_tolerant_pickle)
+    return ckpt
 
 
 def read_state_dict(file: Path, model: VPoser) -> tuple[dict[str, torch.Tensor], list[str], str]:
@@ -184,7 +170,7 @@ def read_project_config(file: str | Path) -> dict:
             f"{file} looks like the official VPoser release (a V02_05 folder or a .ckpt): load it with "
             "size='paper'; size 'embedded' reads priors/weights/vposer.pt"
         )
-    ckpt = torch.load(file, map_location="cpu", weights_only=True)
+    ckpt = torch_load_weights(file, "retrain with `python -m benchmark train vposer-slerp`")
     cfg = ckpt.get("config") if isinstance(ckpt, dict) else None
     if not isinstance(cfg, dict) or not {"hidden", "latent"} <= set(cfg):
         raise ValueError(f"{file}: field 'config' with 'hidden' and 'latent' is missing; retrain with priors.vposer.train.train_vposer")
@@ -203,12 +189,10 @@ def _is_optional(key: str) -> bool:
 
 
 def torch_load_cpu(file: str | Path) -> object:
-    """``torch.load`` on CPU, ``weights_only=True`` first (plain state dicts, also the legacy
-    pre-1.6 serialisation), then the project's tolerant full unpickler (:func:`_torch_load`)."""
-    try:
-        return torch.load(file, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
-        return _torch_load(Path(file))
+    """``torch.load`` on CPU with ``weights_only=True`` (plain state dicts, also the legacy pre-1.6
+    serialisation); a file that pickles anything else is refused with
+    :class:`benchmark.safe_loading.UnsafeFileError`."""
+    return torch_load_weights(file, STATE_DICT_FIX)
 
 
 def load_vposer_v1_state(state: object, model: VPoserV1, file: str | Path = "<state dict>", prefix: str = "") -> list[str]:

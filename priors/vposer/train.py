@@ -133,11 +133,13 @@ def train_vposer(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.vposer.train --out priors/weights --steps 15000 --seed 0``: train the embedded weights."""
+    from benchmark import argtypes as at
+
     ap = training.recipe_parser("Train the embedded VPoser on the synthetic training split.", DEFAULT_WEIGHTS, 15000)
-    ap.add_argument("--hidden", type=int, default=EMBEDDED_CONFIG["hidden"])
-    ap.add_argument("--latent", type=int, default=EMBEDDED_CONFIG["latent"])
-    ap.add_argument("--batch-size", type=int, default=256)
-    ap.add_argument("--frame-every", type=int, default=2)
+    ap.add_argument("--hidden", type=at.positive_int, default=EMBEDDED_CONFIG["hidden"])
+    ap.add_argument("--latent", type=at.positive_int, default=EMBEDDED_CONFIG["latent"])
+    ap.add_argument("--batch-size", type=at.positive_int, default=256)
+    ap.add_argument("--frame-every", type=at.positive_int, default=2)
     args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
     _, rec = train_vposer(args.out, steps=args.steps, seed=args.seed, hidden=args.hidden, latent=args.latent,
                           batch_size=args.batch_size, frame_every=args.frame_every)
