@@ -104,3 +104,16 @@ seed = Number(int, 0, MAX_SEED)
 jobs = Number(int, 1, MAX_JOBS)
 points = Number(int, 1, MAX_POINTS, unit="points per frame")
 
+
+
+class Once(argparse.Action):
+    """``action=Once``: an option that may be given at most once. argparse's default keeps the
+    last of repeated values without a word (``--weights A --weights B`` would silently use B)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        seen = f"_given_{self.dest}"
+        if getattr(namespace, seen, False):
+            parser.error(f"argument {option_string}: given twice ({getattr(namespace, self.dest)!r} and {values!r}); "
+                         "give it once")
+        setattr(namespace, seen, True)
+        setattr(namespace, self.dest, values)

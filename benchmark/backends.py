@@ -243,8 +243,12 @@ def _process_worker(conn, payload_path: str, threads: int, driver_pid: int | Non
 
     Signals: Ctrl-C reaches every process of the terminal's group; a worker ignores it (the driver
     stops the workers). The driver starts workers with SIGINT blocked, so that none can arrive
-    before this point. SIGTERM keeps its default action: the driver's ``terminate()`` ends a worker
-    at once, silently. A driver that is gone (its end of the pipe closed) ends the worker quietly."""
+    before this point. SIGTERM has its default action (also under the ``fork`` start method, which
+    would inherit the driver's handler): the driver's ``terminate()`` ends a worker at once,
+    silently. On Linux the kernel sends that SIGTERM too when the driver exits in any way
+    (:func:`_die_with_driver`); a driver that is gone otherwise (its end of the pipe closed) ends
+    the worker quietly at its next message."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # discards a Ctrl-C pending since the start
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
@@ -387,7 +391,8 @@ class ProcessBackend:
 
         def start() -> None:
             parent, child = ctx.Pipe(duplex=True)
-            proc = ctx.Process(target=_process_worker, args=(child, payload_path, self.threads, os.getpid()),
+            driver = os.getpid() if self.start_method in ("spawn", "fork") else None  # the worker's parent
+            proc = ctx.Process(target=_process_worker, args=(child, payload_path, self.threads, driver),
                                name="benchmark-unit-worker", daemon=True)
             with _sigint_blocked():
                 proc.start()

@@ -1,9 +1,19 @@
-"""What exists: tables, priors, datasets, profiles (for ``python -m benchmark list``)."""
+"""What exists: tables, priors, datasets, profiles (for ``python -m benchmark list``).
+
+Table specs: the project's own ``benchmark/tables/*.yaml``, the specs other packages register in
+the entry-point group ``benchmark.tables`` (a table name -> ``"package:file.yaml"``), and those
+registered at run time (:func:`register_table`). A spec's ``protocol`` field names its protocol in
+:mod:`benchmark.protocols.registry` (docs/adding-a-table.md).
+"""
 
 from __future__ import annotations
 
+import re
+from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
+from importlib.metadata import entry_points
+from pathlib import Path
 
 import yaml
 
@@ -18,6 +28,68 @@ DATASETS = {
 }
 
 
+TABLES_GROUP = "benchmark.tables"  # entry points: table name -> "package:spec.yaml" (docs/adding-a-table.md)
+BUILTIN_ORIGIN = "built-in"
+
+
+@dataclass
+class TableEntry:
+    """Where a table spec lives: a YAML file in a package (``"package:file.yaml"``, read through
+    importlib.resources) or a path (``"/path/to/file.yaml"``)."""
+
+    name: str
+    target: str
+    origin: str  # "built-in" (benchmark/tables/), the distribution that registered it, or "runtime"
+
+    def read_text(self) -> str:
+        if _RESOURCE.fullmatch(self.target) and not Path(self.target).is_file():
+            package, _, resource = self.target.partition(":")
+            return resources.files(package).joinpath(resource).read_text()
+        return Path(self.target).read_text()
+
+
+_RESOURCE = re.compile(r"[A-Za-z_][\w.]*:[\w.\-/]+")
+_TABLES: dict[str, TableEntry] | None = None
+
+
+def _discover_tables() -> dict[str, TableEntry]:
+    """The project's own specs (``benchmark/tables/*.yaml``), then the entry-point group
+    ``benchmark.tables`` (specs of other packages)."""
+    found = {p.name[:-5]: TableEntry(p.name[:-5], f"benchmark.tables:{p.name}", BUILTIN_ORIGIN)
+             for p in resources.files("benchmark.tables").iterdir() if p.name.endswith(".yaml")}
+    for ep in entry_points(group=TABLES_GROUP):
+        dist = getattr(ep, "dist", None)
+        origin = f"{dist.name} {dist.version}" if dist is not None else "unknown"
+        if ep.name in found and found[ep.name].target != ep.value:
+            raise ValueError(f"table name collision: {ep.name!r} is registered by {found[ep.name].origin} "
+                             f"({found[ep.name].target}) and by {origin} ({ep.value}); uninstall one of them")
+        found[ep.name] = TableEntry(ep.name, ep.value, origin)
+    return found
+
+
+def table_registry() -> dict[str, TableEntry]:
+    global _TABLES
+    if _TABLES is None:
+        _TABLES = _discover_tables()
+    return _TABLES
+
+
+def register_table(name: str, target, origin: str = "runtime") -> None:
+    """Register a table spec at run time (tests, notebooks): ``target`` is the spec's path or
+    ``"package:file.yaml"``. Its ``protocol`` must be registered too
+    (:func:`benchmark.protocols.registry.register`)."""
+    reg = table_registry()
+    if name in reg:
+        raise ValueError(f"table {name!r} is already registered by {reg[name].origin} ({reg[name].target})")
+    reg[name] = TableEntry(name, str(target), origin)
+    load_table_spec.cache_clear()
+
+
+def unregister_table(name: str) -> None:
+    table_registry().pop(name, None)
+    load_table_spec.cache_clear()
+
+
 @lru_cache(maxsize=None)
 def load_table_spec(name: str) -> dict:
     names = table_names()
@@ -27,12 +99,20 @@ def load_table_spec(name: str) -> dict:
         close = difflib.get_close_matches(name, names, n=1)
         hint = f" Did you mean {close[0]!r}?" if close else ""
         raise KeyError(f"unknown table {name!r}.{hint} Known: {', '.join(names)}")
-    text = resources.files("benchmark.tables").joinpath(f"{name}.yaml").read_text()
-    return yaml.safe_load(text)
+    entry = table_registry()[name]
+    spec = yaml.safe_load(entry.read_text())
+    if entry.origin == BUILTIN_ORIGIN:
+        return spec
+    where = f"table {name!r} ({entry.target}, from {entry.origin})"
+    if not isinstance(spec, dict) or spec.get("name") != name:
+        got = spec.get("name") if isinstance(spec, dict) else type(spec).__name__
+        raise ValueError(f"{where}: the spec's 'name' field must be {name!r}, got {got!r}")
+    spec["_source"] = entry.target  # for error messages; keys starting with "_" are not rules
+    return spec
 
 
 def table_names() -> list[str]:
-    return sorted(p.name[:-5] for p in resources.files("benchmark.tables").iterdir() if p.name.endswith(".yaml"))
+    return sorted(table_registry())
 
 
 @lru_cache(maxsize=None)
@@ -55,7 +135,17 @@ def get_profile(name: str, table: str | None = None) -> dict:
 
 
 def table_rows():
-    return [(n, load_table_spec(n)["title"]) for n in table_names()]
+    rows = []
+    for name in table_names():
+        entry = table_registry()[name]
+        try:
+            spec = load_table_spec(name)
+        except Exception as exc:  # a broken plug-in's spec must not take `list` down
+            rows.append((name, f"LOAD ERROR ({entry.origin}, {entry.target}): {type(exc).__name__}: {exc}"))
+            continue
+        where = "" if entry.origin == BUILTIN_ORIGIN else f"  [{entry.origin}: {entry.target}]"
+        rows.append((name, f"{spec.get('title', name)}{where}"))
+    return rows
 
 
 def prior_rows():
@@ -69,6 +159,20 @@ def prior_rows():
         else:
             paper = getattr(cls, "paper", "")
             rows.append((name, f"{paper}  [{entry.origin}: {entry.target}]"))
+    return rows
+
+
+def protocol_rows():
+    from benchmark.protocols.registry import registry
+
+    rows = []
+    for name, entry in sorted(registry().items()):
+        cls = entry.load()
+        if cls is None:
+            rows.append((name, f"LOAD ERROR ({entry.origin}, {entry.target}): {entry.error}"))
+        else:
+            doc = ((getattr(cls, "__doc__", None) or "").strip().splitlines() or [""])[0]
+            rows.append((name, f"{doc}  [{entry.origin}: {entry.target}]"))
     return rows
 
 

@@ -11,11 +11,12 @@ import traceback
 
 def _cmd_list(args) -> int:
     from benchmark.body import BODY_KINDS
-    from benchmark.catalog import dataset_rows, prior_rows, profile_rows, table_rows
+    from benchmark.catalog import dataset_rows, prior_rows, profile_rows, protocol_rows, table_rows
 
     sections = [
         ("tables", table_rows()),
         ("priors", prior_rows()),
+        ("protocols", protocol_rows()),
         ("datasets", dataset_rows()),
         ("body models", [(k, v) for k, v in BODY_KINDS.items()]),
         ("profiles", profile_rows()),
@@ -76,8 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="print the traceback of an error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser("list", help="tables, priors, datasets, body models, profiles")
-    p.add_argument("what", nargs="?", choices=["tables", "priors", "datasets", "body", "profiles"], default=None)
+    p = sub.add_parser("list", help="tables, priors, protocols, datasets, body models, profiles")
+    p.add_argument("what", nargs="?", choices=["tables", "priors", "protocols", "datasets", "body", "profiles"], default=None)
     p.set_defaults(func=_cmd_list)
 
     p = sub.add_parser("data", help="motion data: convert files, build the synthetic splits")

@@ -331,14 +331,14 @@ def add_run_commands(sub) -> None:
                        "the paper-size network with random weights)", formatter_class=fmt)
     p.add_argument("name", nargs="?", default=None, help="a prior (python -m benchmark list priors)")
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
-    p.add_argument("--weights", default=None)
+    p.add_argument("--weights", action=at.Once, default=None)
     p.add_argument("--body", default=None, help="also describe a body model: anny | smpl | smplh | smplx[=PATH[:gender]]")
     p.set_defaults(func=_cmd_describe)
 
     p = sub.add_parser("check-prior", help="conformance kit: run an adapter through a tiny table", formatter_class=fmt)
     p.add_argument("name")
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
-    p.add_argument("--weights", default=None)
+    p.add_argument("--weights", action=at.Once, default=None)
     p.set_defaults(func=_cmd_check_prior)
 
     p = sub.add_parser("train", help="train a prior's embedded weights on the synthetic training split", formatter_class=fmt)
@@ -360,7 +360,7 @@ def add_run_commands(sub) -> None:
                        formatter_class=fmt)
     p.add_argument("name")
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded", help="prior size; paper needs --weights")
-    p.add_argument("--weights", default=None, help="checkpoint (embedded: default priors/weights; paper: the official one)")
+    p.add_argument("--weights", action=at.Once, default=None, help="checkpoint (embedded: default priors/weights; paper: the official one)")
     p.add_argument("--out", default=None, help="output .onnx, record written beside it as .json (default: exports/NAME.SIZE.onnx)")
     p.add_argument("--opset", type=_opset, default=17,
                    help="ONNX opset version (11 up to the newest this torch exports; some priors need 13)")

@@ -176,7 +176,7 @@ def run_complete(args) -> dict:
     from benchmark.catalog import get_profile, load_table_spec
     from benchmark.motion import Motion
     from benchmark.protocols.completion import decode_output, fit, observation_batch
-    from benchmark.protocols.completion_unit import _loss_vertices, latent_init_rule, start_search_rule
+    from benchmark.protocols.completion_unit import latent_init_rule, loss_vertex_count, start_search_rule
     from benchmark.registry import make_adapter
     from benchmark.synthetic.scan_set import write_ply_mesh
 
@@ -203,7 +203,7 @@ def run_complete(args) -> dict:
     t0 = time.perf_counter()
     state, info = fit(adapter, body, batch, steps=steps, lr=float(obj["lr"]), lambda_prior=float(obj["lambda_prior"]),
                       generator=torch.Generator().manual_seed(args.seed), device=device,
-                      loss_vertices=_loss_vertices(profile), facing=args.facing,
+                      loss_vertices=loss_vertex_count(profile), facing=args.facing,
                       shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(spec),
                       start_search=start_search_rule(spec))
     fit_s = time.perf_counter() - t0
@@ -287,7 +287,7 @@ def add_complete_command(sub) -> None:
                         "observation with the prior-free coarse search and turns the prior's start to it; 'search' runs "
                         "that search with the prior itself; 'heading8' is table1 protocol v1's T-pose yaw score")
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
-    p.add_argument("--weights", default=None, help="checkpoint for --size paper")
+    p.add_argument("--weights", action=at.Once, default=None, help="checkpoint for --size paper")
     p.add_argument("--body", default="anny")
     p.add_argument("--up", choices=["y", "z"], default="y", help="scan folders: up axis")
     p.add_argument("--units", choices=["m", "cm", "mm"], default="m", help="scan folders: units")

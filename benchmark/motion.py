@@ -26,6 +26,7 @@ a translation beyond 1 km (millimetres, a scale error); it warns on unusual but 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import tempfile
@@ -37,9 +38,11 @@ import numpy as np
 import torch
 
 from benchmark.body.lbs import forward_kinematics
-from benchmark.plausibility import check_motion
+from benchmark.plausibility import SMPL_FAMILY, check_motion, check_shape, shape_family
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle, slerp_matrices
 from benchmark.skeleton import NUM_JOINTS
+
+log = logging.getLogger(__name__)
 
 _TIME_EPS = 1e-9  # seconds; tolerance for timestamp comparisons at window edges
 
@@ -372,3 +375,21 @@ def joint_positions(motion_or_batch, rest_joints: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"rest_joints must end in ({NUM_JOINTS}, 3), got {tuple(rest_joints.shape)}")
     _, joints = forward_kinematics(rot, rest)
     return joints + trans.to(rot)[..., None, :]
+
+
+def shape_for_body(motion, body, where: str | None = None):
+    """``motion`` with its shape made fit for ``body``: kept when it belongs to this body family
+    (SMPL betas truncated or zero-padded to the body's count); a shape of another body is replaced
+    by the neutral shape. The length is checked first (:func:`benchmark.plausibility.check_shape`:
+    an implausible one is an error naming ``where``, the motion's file; default its source)."""
+    if motion.shape is None:
+        return motion
+    src = shape_family(motion.body)
+    kind = shape_family(str(getattr(body, "model_type", None) or body.name))  # "smplh-female" -> "smplh"
+    if src == kind or (src in SMPL_FAMILY and kind in SMPL_FAMILY):
+        check_shape(motion.shape, where or motion.source or "motion", body.name, kind, body.shape_dim)
+        s = motion.shape.reshape(-1)[: body.shape_dim]
+        s = torch.cat([s, s.new_zeros(body.shape_dim - s.numel())])
+        return replace(motion, shape=s, body=body.name)
+    log.info("motion %s: its %s shape does not apply to body %r; using the neutral shape", motion.source, src, body.name)
+    return replace(motion, shape=None, body=None)

@@ -114,11 +114,11 @@ def chamfer_compare(frames: int = 4, points=(100, 1000, 10000), vertices=(3000, 
     (workers=1) vs pykdtree, on body-sized ellipsoid clouds (``a`` the vertices, ``b`` the points)."""
     from scipy.spatial import cKDTree
 
-    from benchmark.metrics.chamfer import _pykdtree, chamfer_distance, chamfer_loss
+    from benchmark.metrics.chamfer import chamfer_distance, chamfer_loss, pykdtree_class
     from benchmark.metrics.static_chamfer import StaticChamfer
     from benchmark.metrics.perf import _synthetic_pair
 
-    kd = _pykdtree()
+    kd = pykdtree_class()
     rows = []
     for n_vertices in vertices:
         for n_points in points:
@@ -198,7 +198,7 @@ def surface_compare(n_points: int = 2000, slow_points: int = 200, repeats: int =
     from benchmark.body.anny_body import load_anny_body
     from benchmark.metrics.chamfer import build_tree, query_tree
     from benchmark.metrics.surface import points_to_surface_distance
-    from benchmark.protocols.completion_unit import (SURFACE_K, _vertex_faces, scan_to_surface_distance,
+    from benchmark.protocols.completion_unit import (SURFACE_K, incident_faces, scan_to_surface_distance,
                                                      scan_to_surface_frame)
 
     body = load_anny_body("cpu")
@@ -206,7 +206,7 @@ def surface_compare(n_points: int = 2000, slow_points: int = 200, repeats: int =
     verts = out.vertices[0, 0].float()
     pts = scan[0, 0, :n_points].float()
     faces = body.faces.cpu()
-    vf = _vertex_faces(faces, verts.shape[0])
+    vf = incident_faces(faces, verts.shape[0])
     vf_np, faces_np = vf.numpy(), np.ascontiguousarray(faces.numpy(), dtype=np.int64)
 
     def project():
@@ -312,11 +312,11 @@ def adam_steps_table1(steps: int = 4, prior: str = "no-prior") -> list[dict]:
             stamps = []
             fit(adapter, body, batch, steps=steps + 1, lr=float(spec["objective"]["lr"]),
                 lambda_prior=float(spec["objective"]["lambda_prior"]), generator=torch.Generator().manual_seed(0),
-                device="cpu", loss_vertices=cu._loss_vertices(profile),
+                device="cpu", loss_vertices=cu.loss_vertex_count(profile),
                 callback=lambda step, loss: stamps.append(_CLOCK()))
             per_step = float(np.median(np.diff(stamps)))
             rows.append({"cell": f"{points}/{fps}", "sequences": len(ids), "observed_frames": int(batch.points.shape[0] * batch.points.shape[1]),
-                         "loss_vertices": cu._loss_vertices(profile), "s_per_step": per_step})
+                         "loss_vertices": cu.loss_vertex_count(profile), "s_per_step": per_step})
     return rows
 
 

@@ -1,4 +1,4 @@
-"""The prior adapter API: what a prior declares and provides to the protocols.
+"""The prior contract in one place: what a prior declares and provides to the protocols.
 
 The protocol (not the adapter) owns the optimiser loop, the data term, the free rigid parameters,
 interpolation to output timestamps and the schedule, so every prior is judged by the same rules.
@@ -15,19 +15,33 @@ the layout every learned prior here uses (``priors/vposer/`` is the nearest real
         my_prior/
             __init__.py     the method in its docstring; exports the adapter
             model.py        the networks at any size, pure torch, no I/O
-            checkpoint.py   the checkpoint format(s), read strictly
+            checkpoint.py   load(path, size) -> (network, CheckpointReport), read strictly
             adapter.py      the PriorAdapter
             train.py        the training recipe
 
-The contract, in short. An adapter *declares* ``name`` (registry name), ``window`` (a
+The contract, in short. An adapter subclasses :class:`PriorAdapter` and *declares* (class
+attributes, each with a default here) ``name`` (registry name), ``paper``, ``window`` (a
 :class:`WindowSpec`: "per-frame", "fixed" or "continuous"), ``encodes_translation`` and
 ``encodes_root_orientation`` (False: the protocol fits them, free, on top of ``decode``),
 ``heading_normalised`` (True: the protocol frees one heading per window), ``joints``,
-``shape_conditioned``, ``has_encoder``; it is constructed as ``cls(size=, weights=, device=)`` and
-*provides* ``init_latents`` (a dict of batch-first tensors, random only through ``generator``),
-``decode`` (latents -> :class:`Decoded` at the requested timestamps, differentiable) and
-``prior_term`` ((B,) penalty). Optional: ``encode_motion`` (with ``has_encoder = True``),
-``export_decoder``, ``paper_network``, ``train_embedded``.
+``shape_conditioned``, ``sixd_layout``, ``constant_latents``, ``default_weights`` (the embedded
+checkpoint, see :meth:`PriorAdapter.embedded_weights`) and ``frozen_network``; it is constructed as
+``cls(size=, weights=, device=)`` (the base sets ``size``, ``weights_path`` and ``checkpoint``) and
+*provides* the three abstract methods ``init_latents`` (a dict of batch-first tensors, random only
+through ``generator``), ``decode`` (latents -> :class:`Decoded` at the requested timestamps,
+differentiable) and ``prior_term`` ((B,) penalty); ``mean_latents`` is optional (default None).
+
+Everything else a prior can do is an *interface* it opts into by subclassing it next to
+:class:`PriorAdapter` (the harness asks ``isinstance``, never ``hasattr``):
+
+- :class:`MotionEncoder`: ``encode_motion`` (the reconstruction table, encoder starts of the motion
+  tables and of table1);
+- :class:`MotionDenoiser`: ``denoise_motion`` (the prior's own denoiser, the denoise table);
+- :class:`AnchorDecoder`: ``decode_anchors`` (decoded anchors and their timestamps, the sls table);
+- :class:`Trainable`: the classmethod ``train_embedded`` (``python -m benchmark train NAME``);
+- :class:`ExportableDecoder`: ``export_decoder`` (``python -m benchmark export-onnx NAME``);
+- :class:`PaperNetwork`: the classmethod ``paper_network`` (``describe NAME --size paper``);
+- :class:`InterpolationBaseline`: no method; the motion tables take its latents as they are.
 
 Minimal example: a complete adapter in one module that passes ``check-prior`` (free per-frame
 poses pulled towards the T-pose; ``priors/no_prior.py`` is the same with no pull)::
@@ -50,7 +64,7 @@ poses pulled towards the T-pose; ``priors/no_prior.py`` is the same with no pull
 
         def init_latents(self, batch: FitBatch, generator: torch.Generator):
             noise = 0.01 * torch.randn(batch.batch_size, batch.num_observed, 21, 6, generator=generator)
-            return {"pose": self.eye6 + noise.to(self.eye6.device)}
+            return {"pose": self.eye6 + noise.to(self.device)}
 
         def decode(self, latents, timestamps, shape=None):
             body = sixd_to_matrix(latents["pose"], layout="interleaved")  # (B, n, 21, 3, 3)
@@ -68,12 +82,18 @@ and in your package's ``pyproject.toml``, then ``pip install -e .``::
 
 from __future__ import annotations
 
+import abc
+import itertools
 from dataclasses import dataclass, field
-from typing import Literal
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar, Literal
 
 import torch
 
 from benchmark.skeleton import NUM_JOINTS
+
+if TYPE_CHECKING:
+    from priors.checkpoints import CheckpointReport
 
 
 @dataclass(frozen=True)
@@ -135,7 +155,7 @@ class Decoded:
 
 @dataclass
 class ExportSpec:
-    """What :meth:`PriorAdapter.export_decoder` returns.
+    """What :meth:`ExportableDecoder.export_decoder` returns.
 
     module: an ``nn.Module`` in eval mode whose ``forward(*inputs)`` takes latent tensors (batch
         first) and returns a tuple of tensors (batch first), e.g. rotations (B, T, 22, 3, 3) and,
@@ -150,9 +170,16 @@ class ExportSpec:
     output_names: list
 
 
-class PriorAdapter(torch.nn.Module):
-    """Base class of every prior adapter (see module docstring)."""
+class PriorAdapter(torch.nn.Module, metaclass=abc.ABCMeta):
+    """Base class of every prior adapter (see module docstring).
 
+    Abstract: a subclass that does not provide ``init_latents``, ``decode`` and ``prior_term`` cannot
+    be instantiated. The optional capabilities are the interfaces below (:class:`MotionEncoder`,
+    :class:`MotionDenoiser`, :class:`AnchorDecoder`, :class:`Trainable`, :class:`ExportableDecoder`,
+    :class:`PaperNetwork`, :class:`InterpolationBaseline`), subclassed beside this class.
+    """
+
+    # -- declarations (class attributes) ---------------------------------------------------
     name: str = "prior"
     paper: str = ""
     window: WindowSpec = WindowSpec()
@@ -161,34 +188,40 @@ class PriorAdapter(torch.nn.Module):
     heading_normalised: bool = False  # decoder outputs a canonical heading; the protocol frees one per window
     joints: tuple[int, ...] = tuple(range(1, NUM_JOINTS))  # body joints the prior models
     shape_conditioned: bool = False
-    has_encoder: bool = False
     sixd_layout: str | None = None  # "interleaved" (VPoser/Xu) or "columns" (HM-VAE), if it uses 6D
     constant_latents: tuple[str, ...] = ()  # latents entries the decoder reads but never optimises (no gradient)
-    frozen_network: str | None = None  # attribute holding the trained network, kept frozen and in eval mode
+    frozen_network: str | None = None  # the submodule holding the trained network, kept frozen and in eval mode
+    default_weights: ClassVar[Path | None] = None  # the embedded checkpoint size "embedded" reads without --weights
+
+    # -- set by the constructor ------------------------------------------------------------
+    size: str = "embedded"
+    weights_path: str | None = None  # the file(s) the weights came from (several joined by commas), or None
+    checkpoint: CheckpointReport | None = None  # what the checkpoint loader read (priors.checkpoints)
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__()
         self.size = size
         self.weights_path = weights
+        self._device = torch.device(device)
 
     # -- the three things a prior provides -------------------------------------------------
+    @abc.abstractmethod
     def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """Initial latents for a batch: a prior sample or an encoder's output. Each tensor (B, ...)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def decode(self, latents: dict[str, torch.Tensor], timestamps: torch.Tensor, shape: torch.Tensor | None = None) -> Decoded:
         """Body parameters at ``timestamps`` (B, T) seconds from the window start.
 
         per-frame priors are only asked for their latents' own (observed) timestamps; fixed-window
         priors are asked for their window grid; continuous priors for any timestamps.
         """
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B,) the prior's penalty on the latents (e.g. mean over latent codes of |z|^2)."""
-        raise NotImplementedError
 
-    # -- optional -------------------------------------------------------------------------
+    # -- optional, with a default ----------------------------------------------------------
     def mean_latents(self, batch: FitBatch) -> dict[str, torch.Tensor] | None:
         """The prior's mean latents for a batch (same keys and shapes as :meth:`init_latents`), for
         priors whose :meth:`init_latents` draws a random sample of the prior; None (the default)
@@ -201,15 +234,79 @@ class PriorAdapter(torch.nn.Module):
         """
         return None
 
+    @property
+    def has_encoder(self) -> bool:
+        """Whether the tables use this prior's :meth:`MotionEncoder.encode_motion` (the reconstruction
+        table, the encoder starts): True for every :class:`MotionEncoder`. A prior whose
+        ``encode_motion`` is only an exact change of representation (``no-prior``) declares
+        ``has_encoder = False``: table1's per-frame start search still uses it."""
+        return isinstance(self, MotionEncoder)
+
+    # -- the device, the weights, the network -----------------------------------------------
+    @property
+    def device(self) -> torch.device:
+        """The device of the adapter's tensors (its first parameter or buffer), else the one it was built for."""
+        for t in itertools.chain(self.parameters(), self.buffers()):
+            return t.device
+        return self._device
+
+    @classmethod
+    def embedded_weights(cls, weights: str | Path | None = None, otherwise: str = "") -> Path:
+        """The checkpoint size "embedded" loads: ``weights`` when given, else ``default_weights``.
+        When it is absent: FileNotFoundError naming the file, the command that trains it and
+        ``otherwise`` (e.g. where the official weights are)."""
+        path = Path(weights) if weights is not None else cls.default_weights
+        if path is None:
+            raise ValueError(f"prior {cls.name!r} declares no default_weights: pass the weights file")
+        if not path.exists():
+            raise FileNotFoundError(f"embedded {cls.name} weights not found: {path}. Train them with "
+                                    f"`python -m benchmark train {cls.name}`" + (f", {otherwise}" if otherwise else ""))
+        return path
+
+    @property
+    def trained_network(self) -> torch.nn.Module | None:
+        """The trained network (the submodule named by ``frozen_network``), None for a prior without one."""
+        return None if self.frozen_network is None else self.get_submodule(self.frozen_network)
+
+    def freeze_network(self, device: str | torch.device | None = None) -> None:
+        """Freeze :attr:`trained_network`: no gradients on its parameters, the adapter moved to
+        ``device`` (when given), the network in eval mode (no dropout, BatchNorm running
+        statistics). The protocols optimise latents only."""
+        net = self.trained_network
+        for p in net.parameters():
+            p.requires_grad_(False)
+        if device is not None:
+            self.to(device)
+        net.eval()
+
+    def train(self, mode: bool = True):
+        """``nn.Module.train``; a ``frozen_network`` stays in eval mode whatever ``mode`` is."""
+        super().train(mode)
+        if self.frozen_network is not None:
+            self.trained_network.eval()
+        return self
+
+    def describe(self) -> str:
+        n = sum(p.numel() for p in self.parameters())
+        return f"{self.name} ({self.size}): {n:,} parameters\n{self}"
+
+    def parameter_count(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+
+# -- the optional interfaces ----------------------------------------------------------------
+class MotionEncoder(abc.ABC):
+    """A prior that encodes whole motions into its latents."""
+
+    @abc.abstractmethod
     def encode_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Latents of whole motions, for priors with an encoder (``has_encoder = True``).
+        """Latents of whole motions.
 
         rotations (B, T, 22, 3, 3) local rotations (root = world orientation, y up), trans (B, T, 3)
         metres, timestamps (B, T) seconds from the window start. Returns latents that ``decode``
         accepts for the same window (the reconstruction table decodes them at 30 fps; the denoise and
         in-between tables start their fits from them). Deterministic: the posterior mean.
         """
-        raise NotImplementedError(f"prior {self.name!r} has no motion encoder")
 
     def check_motion(self, rotations: torch.Tensor, trans: torch.Tensor | None, timestamps: torch.Tensor) -> None:
         """Raise a ValueError naming the argument unless rotations are (B, T, 22, 3, 3), timestamps
@@ -225,44 +322,72 @@ class PriorAdapter(torch.nn.Module):
         if trans is not None and tuple(trans.shape) != (B, T, 3):
             raise ValueError(f"{where}: trans must be (B, T, 3) = {(B, T, 3)}, got {tuple(trans.shape)}")
 
-    def export_decoder(self) -> "ExportSpec":
+
+class MotionDenoiser(abc.ABC):
+    """A prior with its own denoiser (the denoise table calls it instead of fitting)."""
+
+    @abc.abstractmethod
+    def denoise_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor,
+                       mode: str = "regression", iterations: int = 0) -> Decoded:
+        """Denoised motions: rotations (B, T, 22, 3, 3), trans (B, T, 3), timestamps (B, T) -> a
+        :class:`Decoded` (or a (rotations, trans) pair) at the same timestamps, in the world frame.
+        ``mode`` "regression" (one forward pass) or "optimisation" (``iterations`` steps of the
+        prior's own optimisation); see ``benchmark/protocols/denoise.py``."""
+
+
+class AnchorDecoder(abc.ABC):
+    """A prior that decodes anchor frames with their own timestamps (the sls table's time term)."""
+
+    @abc.abstractmethod
+    def decode_anchors(self, latents: dict[str, torch.Tensor], shape: torch.Tensor | None = None) -> tuple[Decoded, torch.Tensor]:
+        """(Decoded (B, A, ...) at the A anchors, tau_hat (B, A) seconds): see ``benchmark/protocols/sls.py``."""
+
+
+class Trainable(abc.ABC):
+    """A prior whose embedded weights can be (re)trained: ``python -m benchmark train NAME``."""
+
+    @classmethod
+    @abc.abstractmethod
+    def train_embedded(cls, out_dir=None, steps: int | None = None, seed: int = 0, overwrite: bool = False) -> dict:
+        """Train the embedded weights into ``out_dir`` (default: beside ``default_weights``); refuse to
+        overwrite an existing checkpoint unless ``overwrite``. Returns the training record."""
+
+
+class ExportableDecoder(abc.ABC):
+    """A prior whose deterministic decode path exports to ONNX (``python -m benchmark export-onnx NAME``)."""
+
+    @abc.abstractmethod
+    def export_decoder(self) -> ExportSpec:
         """The deterministic decode path (latents -> body parameters) as a plain module for ONNX.
 
         ``python -m benchmark export-onnx NAME`` traces ``spec.module(*spec.example_inputs)`` with a
         dynamic batch dimension (dim 0 of every input and output).
         """
-        raise NotImplementedError(f"prior {self.name!r} does not export its decoder")
 
-    # -- for adapters around a trained network ---------------------------------------------
-    def freeze_network(self, device: str | torch.device | None = None) -> None:
-        """Freeze the network named by ``frozen_network``: no gradients on its parameters, the
-        adapter moved to ``device`` (when given), the network in eval mode (no dropout, BatchNorm
-        running statistics). The protocols optimise latents only."""
-        net = getattr(self, self.frozen_network)
-        for p in net.parameters():
-            p.requires_grad_(False)
-        if device is not None:
-            self.to(device)
-        net.eval()
 
-    def train(self, mode: bool = True):
-        """``nn.Module.train``; a ``frozen_network`` stays in eval mode whatever ``mode`` is."""
-        super().train(mode)
-        if self.frozen_network is not None:
-            getattr(self, self.frozen_network).eval()
-        return self
+class PaperNetwork(abc.ABC):
+    """A prior that can build its published-size network without weights (``describe NAME --size paper``)."""
 
-    def describe(self) -> str:
-        n = sum(p.numel() for p in self.parameters())
-        return f"{self.name} ({self.size}): {n:,} parameters\n{self}"
+    @classmethod
+    @abc.abstractmethod
+    def paper_network(cls) -> torch.nn.Module:
+        """The paper-size network with random weights, for its architecture and parameter counts."""
 
-    def parameter_count(self) -> int:
-        return sum(p.numel() for p in self.parameters())
+
+class InterpolationBaseline(abc.ABC):
+    """Not a learned prior: the motion protocols take its latents and the rigid parameters set from
+    the observed frames as they are, with no optimisation (``priors/slerp.py``)."""
 
 
 def has_motion_encoder(adapter) -> bool:
-    """True when the adapter declares an encoder and implements ``encode_motion``."""
-    if not getattr(adapter, "has_encoder", False):
-        return False
-    method = getattr(type(adapter), "encode_motion", None)
-    return method is not None and method is not PriorAdapter.encode_motion
+    """True when the tables may use the adapter's encoder: a :class:`MotionEncoder` with ``has_encoder``."""
+    return isinstance(adapter, MotionEncoder) and adapter.has_encoder
+
+
+INTERFACES = (MotionEncoder, MotionDenoiser, AnchorDecoder, Trainable, ExportableDecoder, PaperNetwork, InterpolationBaseline)
+
+
+def interfaces_of(prior) -> list[str]:
+    """The names of the interfaces an adapter (or its class) implements, in :data:`INTERFACES` order."""
+    cls = prior if isinstance(prior, type) else type(prior)
+    return [i.__name__ for i in INTERFACES if issubclass(cls, i)]

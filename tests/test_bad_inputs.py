@@ -1010,6 +1010,22 @@ def _(tmp, mp):
 # check-prior, report, the install
 # (section: misc)
 
+@case("describe: --weights given twice", "describe", "argument --weights: given twice", "'a.pt' and 'b.pt'")
+def _(tmp, mp):
+    return ["describe", "vposer-slerp", "--weights", "a.pt", "--weights", "b.pt"]
+
+
+@case("check-prior: --weights given twice", "check-prior", "argument --weights: given twice")
+def _(tmp, mp):
+    return ["check-prior", "hmvae", "--weights", "a.pt", "--weights", "b.pt"]
+
+
+@case("complete: --weights given twice", "complete", "argument --weights: given twice")
+def _(tmp, mp):
+    return ["complete", str(motion_file(tmp / "m.npz")), "--prior", "vposer-slerp", "--size", "paper",
+            "--weights", "a.pt", "--weights", "b.pt", "--out", str(tmp / "o")]
+
+
 # (end of section: misc)
 
 

@@ -326,10 +326,11 @@ _CLI_SCRIPT = textwrap.dedent("""
     from tiny_run import tiny_table1
     from benchmark.cli import main
 
-    mp = pytest.MonkeyPatch()
-    tiny_table1(mp, fps=(5, 10))
-    sys.exit(main(["run", "table1", "--prior", "no-prior", "--prior", "vposer-slerp", "--data", sys.argv[1],
-                   "--out", sys.argv[2]]))
+    if __name__ == "__main__":  # worker processes (spawn) re-import this script
+        mp = pytest.MonkeyPatch()
+        tiny_table1(mp, fps=(5, 10))
+        sys.exit(main(["run", "table1", "--prior", "no-prior", "--prior", "vposer-slerp", "--data", sys.argv[1],
+                       "--out", sys.argv[2]]))
 """)
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -24,7 +25,8 @@ from pathlib import Path
 import pytest
 
 from benchmark import runner
-from benchmark.backends import EXECUTOR_FOLDER_PREFIX, ProcessBackend, _executor_folder, _host_tag, _keep_sigterm_handler
+from benchmark.backends import (EXECUTOR_FOLDER_PREFIX, ProcessBackend, _executor_folder, _host_tag,
+                                _keep_sigterm_handler)
 from benchmark.interrupts import Terminated, add_stop_note, exit_code, sigterm_raises, stop_message
 from fake_units import FakeExecutor, plan
 from tiny_run import write_motion
@@ -258,15 +260,20 @@ def test_sigterm_on_ray_shuts_the_runtime_down_and_exits_143(driver):
     """ray.init replaces the SIGTERM handler (and adds a C one that aborts 3 s later): the run
     still unwinds, cancels its tasks and stops the Ray runtime it started."""
     pytest.importorskip("ray")
-    driver.env["RAY_USAGE_STATS_ENABLED"] = "0"
-    driver.start("--backend", "ray")
-    _wait(driver.units, 300, "the first unit file", driver.proc)
-    code, took, stderr = _stop(driver, signal.SIGTERM, group=False)
-    assert code == 143 and took < 20, (code, took, stderr)
-    assert "Traceback" not in stderr and "SIGTERM received" not in stderr, stderr
-    assert stderr.strip().splitlines()[-1].startswith("terminated (SIGTERM): ")
-    _wait(lambda: not _group(driver.proc.pid), 30, "the Ray processes to end")
-    assert not (driver.out / ".lock").exists()
+    short = Path(tempfile.mkdtemp(prefix="rs-", dir="/tmp"))  # Ray's socket paths must stay under 108 bytes
+    try:
+        driver.env.update(TMPDIR=str(short), RAY_USAGE_STATS_ENABLED="0")
+        driver.start("--backend", "ray")
+        _wait(driver.units, 300, "the first unit file", driver.proc)
+        code, took, stderr = _stop(driver, signal.SIGTERM, group=False)
+        assert code == 143 and took < 20, (code, took, stderr)
+        assert "Traceback" not in stderr and "SIGTERM received" not in stderr, stderr
+        assert stderr.strip().splitlines()[-1].startswith("terminated (SIGTERM): ")
+        _wait(lambda: not _group(driver.proc.pid), 30, "the Ray processes to end")
+        assert not (driver.out / ".lock").exists()
+    finally:
+        driver.kill_all()
+        shutil.rmtree(short, ignore_errors=True)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -292,7 +299,10 @@ class _Stop:
 
     def __call__(self, unit, result, error):
         self.seen.append(unit.unit_id)
-        self.folders = [(f.name, f.stat().st_mode & 0o777, sorted((p.name, p.stat().st_mode & 0o777) for p in f.iterdir()))
+        def mode(path):
+            return path.stat().st_mode & 0o777
+
+        self.folders = [(f.name, mode(f), sorted((p.name, mode(p)) for p in f.iterdir()))
                         for f in Path(tempfile.gettempdir()).glob(f"{EXECUTOR_FOLDER_PREFIX}*")]
         if len(self.seen) == self.n:
             raise self.exc

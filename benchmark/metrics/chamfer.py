@@ -12,7 +12,7 @@ point sets (:func:`chamfer_loss`):
 
 - ``"kdtree"``: ``pykdtree`` per batch element, float64 (CPU; elements run in parallel threads,
   the build and query release the GIL; pykdtree's own OpenMP threads default to one, see
-  :func:`_pykdtree`). Falls back to ``"scipy"`` where pykdtree is not installed.
+  :func:`pykdtree_class`). Falls back to ``"scipy"`` where pykdtree is not installed.
 - ``"scipy"``: scipy ``cKDTree`` per batch element, float64: the reference implementation the
   ``"kdtree"`` backend is tested against (the project's exact path before pykdtree).
 - ``"tiled"``: brute force in torch over tiles of query points, so that the distance tile never
@@ -57,7 +57,7 @@ _PYKDTREE_LEAFSIZE = 16
 _PYKDTREE = None  # the pykdtree KDTree class once imported; False when not installed
 
 
-def _pykdtree():
+def pykdtree_class():
     """pykdtree's ``KDTree`` class, or None where pykdtree is not installed.
 
     pykdtree parallelises each query with OpenMP (its own libgomp, read once at import). This
@@ -84,7 +84,7 @@ def _pykdtree():
 def build_tree(points: np.ndarray):
     """A KD-tree on (n, 3) float64 points: pykdtree where installed, else scipy cKDTree.
     Query it with :func:`query_tree`."""
-    kd = _pykdtree()
+    kd = pykdtree_class()
     if kd is None:
         return cKDTree(points, **_KDTREE_OPTIONS)
     return kd(points, leafsize=_PYKDTREE_LEAFSIZE)
@@ -162,7 +162,7 @@ def validate_lengths(lengths, name: str, caller: str, batch: int, size: int, dev
     return lengths.to(device=device, dtype=torch.long)
 
 
-def _prefix_mask(lengths: torch.Tensor, size: int) -> torch.Tensor:
+def prefix_mask(lengths: torch.Tensor, size: int) -> torch.Tensor:
     """(N, size) bool, True on the valid prefix of each element."""
     return torch.arange(size, device=lengths.device)[None, :] < lengths[:, None]
 
@@ -191,10 +191,10 @@ def _validate_options(backend: str, max_tile_elements: int, caller: str) -> None
         raise ValueError(f"{caller}: `max_tile_elements` must be a positive int; got {max_tile_elements!r}.")
 
 
-def _clean_padding(x: torch.Tensor, lengths: torch.Tensor, name: str, caller: str):
+def clean_padding(x: torch.Tensor, lengths: torch.Tensor, name: str, caller: str):
     """Check the valid points are finite and zero the padding, so that whatever the padding holds
     (NaN included) never reaches a value or a gradient. Returns (x with zero padding, (N, P) mask)."""
-    mask = _prefix_mask(lengths, x.shape[1])
+    mask = prefix_mask(lengths, x.shape[1])
     finite = torch.isfinite(x.detach()).all(dim=-1)
     if not bool((finite | ~mask).all()):
         raise ValueError(f"{caller}: `{name}` holds NaN or inf at valid (unpadded) points.")
@@ -223,7 +223,7 @@ def cpu_threads() -> int:
     return max(1, min(cores, torch.get_num_threads()))
 
 
-def _map_elements(fn, n_batch: int) -> list:
+def map_elements(fn, n_batch: int) -> list:
     """[fn(n) for n in range(n_batch)], one element per thread when there are several threads."""
     threads = min(cpu_threads(), n_batch)
     if threads > 1:
@@ -247,7 +247,7 @@ def _pykdtree_indices(query: torch.Tensor, ref: torch.Tensor, qlen: list[int], r
         if both:
             idx_rq[n, : rlen[n]] = query_tree(build_tree(pq), pr)[1]
 
-    _map_elements(element, n_batch)
+    map_elements(element, n_batch)
     out_qr = torch.from_numpy(idx_qr).to(query.device)
     out_rq = torch.from_numpy(idx_rq).to(query.device) if both else None
     return out_qr, out_rq
@@ -308,8 +308,8 @@ def _tiled_indices(query: torch.Tensor, ref: torch.Tensor, qlen: torch.Tensor, r
     n_batch, p, _ = query.shape
     q = ref.shape[1]
     with torch.no_grad():
-        rmask = _prefix_mask(rlen, q)
-        # Padding is zero here (see _clean_padding), so the plain sum is the sum of valid points.
+        rmask = prefix_mask(rlen, q)
+        # Padding is zero here (see clean_padding), so the plain sum is the sum of valid points.
         centre = ref.sum(1, keepdim=True) / rlen[:, None, None].to(ref.dtype)
         qc, rc = query - centre, ref - centre
         r_sq = rc.square().sum(-1).masked_fill(~rmask, math.inf)  # (N, Q)
@@ -333,21 +333,21 @@ def _tiled_indices(query: torch.Tensor, ref: torch.Tensor, qlen: torch.Tensor, r
                         best_val = torch.where(better, val, best_val)
                         best_arg = torch.where(better, arg, best_arg)
                 best_idx[b0:b1, p0:p1] = best_arg
-        return best_idx.masked_fill(~_prefix_mask(qlen, p), -1)
+        return best_idx.masked_fill(~prefix_mask(qlen, p), -1)
 
 
 def _naive_indices(query: torch.Tensor, ref: torch.Tensor, qlen: torch.Tensor, rlen: torch.Tensor) -> torch.Tensor:
     """Full (N, P, Q) Euclidean distance matrix and argmin; (N, P) long, -1 at padded queries."""
     with torch.no_grad():
         dist = torch.cdist(query, ref, compute_mode="donot_use_mm_for_euclid_dist")
-        dist = dist.masked_fill(~_prefix_mask(rlen, ref.shape[1])[:, None, :], math.inf)
+        dist = dist.masked_fill(~prefix_mask(rlen, ref.shape[1])[:, None, :], math.inf)
         idx = dist.argmin(dim=-1)
-        return idx.masked_fill(~_prefix_mask(qlen, query.shape[1]), -1)
+        return idx.masked_fill(~prefix_mask(qlen, query.shape[1]), -1)
 
 
-def _indices(query, ref, qlen, rlen, backend, max_tile_elements, both):
+def nearest_indices(query, ref, qlen, rlen, backend, max_tile_elements, both):
     """Dispatch to a backend; returns (idx query->ref, idx ref->query or None)."""
-    if backend == "kdtree" and _pykdtree() is not None:
+    if backend == "kdtree" and pykdtree_class() is not None:
         return _pykdtree_indices(query, ref, qlen.tolist(), rlen.tolist(), both)
     if backend in ("kdtree", "scipy"):
         return _kdtree_indices(query, ref, qlen.tolist(), rlen.tolist(), both)
@@ -379,17 +379,17 @@ def nearest_neighbors(query: torch.Tensor, ref: torch.Tensor, query_lengths: tor
     caller = "nearest_neighbors"
     _validate_options(backend, max_tile_elements, caller)
     qlen, rlen = _validate_pair(query, ref, query_lengths, ref_lengths, caller, names=("query", "ref"))
-    query, qmask = _clean_padding(query.detach(), qlen, "query", caller)
-    ref, _ = _clean_padding(ref.detach(), rlen, "ref", caller)
+    query, qmask = clean_padding(query.detach(), qlen, "query", caller)
+    ref, _ = clean_padding(ref.detach(), rlen, "ref", caller)
     backend = resolve_backend(backend, query.device)
-    idx, _ = _indices(query, ref, qlen, rlen, backend, max_tile_elements, both=False)
+    idx, _ = nearest_indices(query, ref, qlen, rlen, backend, max_tile_elements, both=False)
     with torch.no_grad():
         nn = torch.gather(ref, 1, idx.clamp_min(0)[..., None].expand(-1, -1, 3))
         dist = (query - nn).norm(dim=-1).masked_fill(~qmask, math.nan)
     return dist, idx
 
 
-def _directed_mean(x: torch.Tensor, y: torch.Tensor, idx: torch.Tensor, xmask: torch.Tensor, xlen: torch.Tensor,
+def directed_mean(x: torch.Tensor, y: torch.Tensor, idx: torch.Tensor, xmask: torch.Tensor, xlen: torch.Tensor,
                    squared: bool, eps: float) -> torch.Tensor:
     """(N,) mean over valid x of the (squared) distance to its matched y point, differentiable in x and y."""
     nn = torch.gather(y, 1, idx.clamp_min(0)[..., None].expand(-1, -1, 3))
@@ -432,7 +432,7 @@ def chamfer_loss(a: torch.Tensor, b: torch.Tensor, a_lengths: torch.Tensor | Non
     return _chamfer(a, b, a_lengths, b_lengths, squared, backend, reduction, max_tile_elements, eps, "chamfer_loss")
 
 
-def _reduce(value: torch.Tensor, reduction: str) -> torch.Tensor:
+def apply_reduction(value: torch.Tensor, reduction: str) -> torch.Tensor:
     """(N,) per-element values reduced as ``reduction`` ("none", "mean" or "sum") says."""
     if reduction == "mean":
         return value.mean()
@@ -448,13 +448,13 @@ def _chamfer(a, b, a_lengths, b_lengths, squared, backend, reduction, max_tile_e
     if not eps >= 0:
         raise ValueError(f"{caller}: `eps` must be >= 0; got {eps!r}.")
     al, bl = _validate_pair(a, b, a_lengths, b_lengths, caller)
-    a, amask = _clean_padding(a, al, "a", caller)
-    b, bmask = _clean_padding(b, bl, "b", caller)
+    a, amask = clean_padding(a, al, "a", caller)
+    b, bmask = clean_padding(b, bl, "b", caller)
     backend = resolve_backend(backend, a.device)
-    idx_ab, idx_ba = _indices(a.detach(), b.detach(), al, bl, backend, max_tile_elements, both=True)
-    value = 0.5 * (_directed_mean(a, b, idx_ab, amask, al, squared, eps)
-                   + _directed_mean(b, a, idx_ba, bmask, bl, squared, eps))
-    return _reduce(value, reduction)
+    idx_ab, idx_ba = nearest_indices(a.detach(), b.detach(), al, bl, backend, max_tile_elements, both=True)
+    value = 0.5 * (directed_mean(a, b, idx_ab, amask, al, squared, eps)
+                   + directed_mean(b, a, idx_ba, bmask, bl, squared, eps))
+    return apply_reduction(value, reduction)
 
 
 def chamfer_distance(a: torch.Tensor, b: torch.Tensor, a_lengths: torch.Tensor | None = None,

@@ -21,17 +21,17 @@ from benchmark.metrics.chamfer import (
     DEFAULT_EPS,
     DEFAULT_MAX_TILE_ELEMENTS,
     REDUCTIONS,
-    _clean_padding,
-    _directed_mean,
-    _indices,
-    _map_elements,
-    _prefix_mask,
-    _pykdtree,
-    _reduce,
+    apply_reduction,
     build_tree,
     chamfer_loss,
+    clean_padding,
     cpu_threads,
+    directed_mean,
+    map_elements,
     morton_order,
+    nearest_indices,
+    prefix_mask,
+    pykdtree_class,
     query_tree,
     resolve_backend,
     validate_lengths,
@@ -69,11 +69,11 @@ class StaticChamfer:
         if b.shape[0] == 0:
             raise ValueError(f"{caller}: empty batch (N = 0).")
         self.bl = validate_lengths(b_lengths, "b_lengths", caller, b.shape[0], b.shape[1], b.device)
-        self.b, self.bmask = _clean_padding(b.detach(), self.bl, "b", caller)
+        self.b, self.bmask = clean_padding(b.detach(), self.bl, "b", caller)
         self.b_lengths = b_lengths
         on_cpu = self.b.device.type == "cpu"
         self.grids = on_cpu and grid_nn.HAVE_NUMBA
-        self.cached = on_cpu and (self.grids or _pykdtree() is not None)
+        self.cached = on_cpu and (self.grids or pykdtree_class() is not None)
         self._a_order = None
         self._hints = None
         if not self.cached:
@@ -84,7 +84,7 @@ class StaticChamfer:
             self._b_np = np.ascontiguousarray(b_np)
             self._bl_np = self.bl.numpy().astype(np.int64)
             self._chunks = _chunks(b.shape[0])
-            self._b_grids = _map_elements(
+            self._b_grids = map_elements(
                 lambda c: grid_nn.PointGrids(self._b_np[self._chunks[c]], self._bl_np[self._chunks[c]],
                                              candidates=b.shape[1] <= grid_nn.CANDIDATE_MAX_POINTS), len(self._chunks))
             self._b_order_arr = np.zeros(self.b.shape[:2], dtype=np.int64)
@@ -92,7 +92,7 @@ class StaticChamfer:
                 self._b_order_arr[n, : lengths[n]] = morton_order(self._b_np[n, : lengths[n]])
             return
         self._b_pts = [np.ascontiguousarray(b_np[n, : lengths[n]]) for n in range(b.shape[0])]
-        self._b_trees = _map_elements(lambda n: build_tree(self._b_pts[n]), b.shape[0])
+        self._b_trees = map_elements(lambda n: build_tree(self._b_pts[n]), b.shape[0])
         self._b_order = [morton_order(pts) for pts in self._b_pts]
         self._b_sorted = [np.ascontiguousarray(pts[o]) for pts, o in zip(self._b_pts, self._b_order)]
 
@@ -112,7 +112,7 @@ class StaticChamfer:
             idx_ab[n, oa] = query_tree(self._b_trees[n], np.ascontiguousarray(pa[oa]))[1]
             idx_ba[n, ob] = query_tree(build_tree(pa), self._b_sorted[n])[1]
 
-        _map_elements(run, n_batch)
+        map_elements(run, n_batch)
         return torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
 
     def _order_a(self, a_np: np.ndarray, al: list[int]) -> None:
@@ -146,7 +146,7 @@ class StaticChamfer:
                 np.ascontiguousarray(b_np[sl]), bl[sl], None if b_order is None else b_order[sl], out=idx_ba[sl],
                 hints=None if hints is None else hints[1][sl])
 
-        _map_elements(run, len(self._chunks))
+        map_elements(run, len(self._chunks))
         if b_order is not None:
             self._hints = (idx_ab.copy(), idx_ba.copy(), al.copy())
         return torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
@@ -185,11 +185,11 @@ class StaticChamfer:
                 f"({self.b.shape[0]}, {self.b.device}, {self.b.dtype}); got {a.shape[0]}, {a.device}, {a.dtype}."
             )
         al = validate_lengths(a_lengths, "a_lengths", caller, a.shape[0], a.shape[1], a.device)
-        a, amask = _clean_padding(a, al, "a", caller)
+        a, amask = clean_padding(a, al, "a", caller)
         idx_ab, idx_ba = self.indices(a, al.tolist())
-        value = 0.5 * (_directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
-                       + _directed_mean(self.b, a, idx_ba, self.bmask, self.bl, squared, eps))
-        return _reduce(value, reduction)
+        value = 0.5 * (directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
+                       + directed_mean(self.b, a, idx_ba, self.bmask, self.bl, squared, eps))
+        return apply_reduction(value, reduction)
 
 
     def _sampled(self, a, a_lengths, squared, reduction, eps, m, generator):
@@ -198,9 +198,9 @@ class StaticChamfer:
             raise ValueError(f"{caller}: `reduction` must be one of {REDUCTIONS}; got {reduction!r}.")
         validate_points(a, "a", caller)
         al = validate_lengths(a_lengths, "a_lengths", caller, a.shape[0], a.shape[1], a.device)
-        a, amask = _clean_padding(a, al, "a", caller)
+        a, amask = clean_padding(a, al, "a", caller)
         bs, bsl = self.sample_b(m, generator)
-        bsmask = _prefix_mask(bsl, bs.shape[1])
+        bsmask = prefix_mask(bsl, bs.shape[1])
         if self.grids:
             a_np = a.detach().to(torch.float64).numpy()
             self._order_a(a_np, al.tolist())
@@ -218,12 +218,12 @@ class StaticChamfer:
                 idx_ab[n, : lens[n]] = query_tree(self._b_trees[n], pa)[1]
                 idx_ba[n] = query_tree(build_tree(pa), np.ascontiguousarray(bs_np[n]))[1]
 
-            _map_elements(run, a_np.shape[0])
+            map_elements(run, a_np.shape[0])
             idx_ab, idx_ba = torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
         else:
             backend = resolve_backend("auto", a.device)
-            idx_ab = _indices(a.detach(), self.b, al, self.bl, backend, DEFAULT_MAX_TILE_ELEMENTS, both=False)[0]
-            idx_ba = _indices(bs, a.detach(), bsl, al, backend, DEFAULT_MAX_TILE_ELEMENTS, both=False)[0]
-        value = 0.5 * (_directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
-                       + _directed_mean(bs, a, idx_ba, bsmask, bsl, squared, eps))
-        return _reduce(value, reduction)
+            idx_ab = nearest_indices(a.detach(), self.b, al, self.bl, backend, DEFAULT_MAX_TILE_ELEMENTS, both=False)[0]
+            idx_ba = nearest_indices(bs, a.detach(), bsl, al, backend, DEFAULT_MAX_TILE_ELEMENTS, both=False)[0]
+        value = 0.5 * (directed_mean(a, self.b, idx_ab, amask, al, squared, eps)
+                       + directed_mean(bs, a, idx_ba, bsmask, bsl, squared, eps))
+        return apply_reduction(value, reduction)

@@ -18,9 +18,11 @@ import torch
 
 from benchmark.degrade import degrade, fingerprint
 from benchmark.fit_diagnostics import sequence_diagnostics
-from benchmark.observations import make_scans, sample_surface
-from benchmark.protocols.unit_data import UnitData, stable_seed  # noqa: F401  (re-exported)
+from benchmark.observations import make_scans
 from benchmark.protocols.completion import decode_output, fit, observation_batch
+from benchmark.protocols.unit_data import UnitData
+from benchmark.surface_sampling import sample_surface
+from benchmark.table_data import stable_seed
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +92,7 @@ def evaluate(body, output, data: UnitData, device, surface_points: int | None = 
     (distance to its circumscribing sphere about the centroid) says it may beat the vertex
     distance; frames run on parallel threads (:func:`benchmark.metrics.chamfer.cpu_threads`).
     """
-    from benchmark.metrics.chamfer import _map_elements, build_tree, query_tree
+    from benchmark.metrics.chamfer import map_elements, build_tree, query_tree
 
     verts = output.vertices.to("cpu", torch.float32)
     B, T = verts.shape[:2]
@@ -115,7 +117,7 @@ def evaluate(body, output, data: UnitData, device, surface_points: int | None = 
         if n_surf < n_scan:
             idx_gv[i, n_surf:] = query_tree(mesh_tree, g_np[i, n_surf:])[1]
 
-    _map_elements(neighbours, n_frames)
+    map_elements(neighbours, n_frames)
     with torch.no_grad():  # as benchmark.metrics.chamfer.nearest_neighbors computes them
         idx_vg_t, idx_gv_t = torch.from_numpy(idx_vg), torch.from_numpy(idx_gv)
         d_vg = (v_flat - torch.gather(g_flat, 1, idx_vg_t[..., None].expand(-1, -1, 3))).norm(dim=-1)
@@ -123,9 +125,9 @@ def evaluate(body, output, data: UnitData, device, surface_points: int | None = 
     vert_to_scan = d_vg.mean(1)
     chamfer = 0.5 * (vert_to_scan + d_gv.mean(1))
     faces = body.faces.cpu()
-    vertex_faces = _vertex_faces(faces, n_verts).numpy()
+    vertex_faces = incident_faces(faces, n_verts).numpy()
     faces_np = np.ascontiguousarray(faces.numpy(), dtype=np.int64)
-    scan_to_surface = torch.stack(_map_elements(
+    scan_to_surface = torch.stack(map_elements(
         lambda i: scan_to_surface_frame(g_flat[i, :n_surf], v_flat[i], faces_np, vertex_faces, knn[i], d_gv[i, :n_surf]),
         n_frames))
     surface = 0.5 * (vert_to_scan.double() + scan_to_surface)
@@ -148,7 +150,7 @@ def _sequence_sums(chamfer: torch.Tensor, surface: torch.Tensor, output, data: U
 def _scan_trees(data: UnitData, g_flat: torch.Tensor) -> list:
     """The KD-trees of the ground-truth scans (one per output frame), built on first use and kept in
     ``data.cache`` (keyed by the scans' shape and storage, so a changed tensor is never served a stale tree)."""
-    from benchmark.metrics.chamfer import _map_elements, build_tree
+    from benchmark.metrics.chamfer import map_elements, build_tree
 
     cache = getattr(data, "cache", None)
     # Unit data are never modified in place; the key still checks the storage and a cheap checksum.
@@ -156,14 +158,14 @@ def _scan_trees(data: UnitData, g_flat: torch.Tensor) -> list:
     if cache is not None and key in cache:
         return cache[key]
     g_np = g_flat.numpy().astype(np.float64)
-    trees = _map_elements(lambda i: build_tree(np.ascontiguousarray(g_np[i])), g_np.shape[0])
+    trees = map_elements(lambda i: build_tree(np.ascontiguousarray(g_np[i])), g_np.shape[0])
     if cache is not None:
         cache.clear()
         cache[key] = trees
     return trees
 
 
-def _vertex_faces(faces: torch.Tensor, n_verts: int) -> torch.Tensor:
+def incident_faces(faces: torch.Tensor, n_verts: int) -> torch.Tensor:
     """(V, width) long: the faces incident to each vertex, padded with the dummy index F."""
     F = faces.shape[0]
     order = torch.argsort(faces.reshape(-1), stable=True)
@@ -180,7 +182,7 @@ def scan_to_surface_frame(points: torch.Tensor, vertices: torch.Tensor, faces: n
                           knn: np.ndarray, vertex_distance: torch.Tensor) -> torch.Tensor:
     """One frame's scan -> surface mean (float64 scalar): min(vertex distance, exact distance to the
     triangles incident to each point's ``knn`` (P, k) nearest vertices), averaged over the (P, 3)
-    ``points``. ``faces`` (F, 3) int64; ``vertex_faces`` (V, width) as :func:`_vertex_faces` gives.
+    ``points``. ``faces`` (F, 3) int64; ``vertex_faces`` (V, width) as :func:`incident_faces` gives.
     The compiled kernel (:mod:`benchmark.metrics.surface_kernel`) where numba is installed, else the
     array path (:func:`_scan_to_surface_frame`): the same doubles either way (tested)."""
     from benchmark.metrics.surface_kernel import HAVE_NUMBA, scan_to_surface_knn
@@ -288,7 +290,7 @@ def scan_to_surface_distance(points: torch.Tensor, vertices: torch.Tensor, faces
 
     from benchmark.metrics.surface import point_triangle_distance
 
-    vf = _vertex_faces(faces, vertices.shape[1])  # (V, width) incident faces, padded with the dummy index F
+    vf = incident_faces(faces, vertices.shape[1])  # (V, width) incident faces, padded with the dummy index F
     out = []
     for i in range(points.shape[0]):
         tree = scipy.spatial.cKDTree(vertices[i].numpy())
@@ -301,7 +303,7 @@ def scan_to_surface_distance(points: torch.Tensor, vertices: torch.Tensor, faces
     return torch.stack(out)
 
 
-def _loss_vertices(profile: dict) -> int | None:
+def loss_vertex_count(profile: dict) -> int | None:
     value = profile.get("loss_vertices", "all")
     return None if value in (None, "all") else int(value)
 
@@ -325,7 +327,7 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     t0 = time.perf_counter()
     state, info = fit(adapter, body, batch, steps=int(profile["steps"]), lr=float(obj["lr"]),
                       lambda_prior=float(obj["lambda_prior"]), generator=g, device=device,
-                      loss_vertices=_loss_vertices(profile), facing=facing_rule(table_spec),
+                      loss_vertices=loss_vertex_count(profile), facing=facing_rule(table_spec),
                       shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(table_spec),
                       start_search=start_search_rule(table_spec))
     t1 = time.perf_counter()
@@ -412,12 +414,12 @@ def make_source(spec: dict, body, motions_by_id: dict, seed: int):
 
 
 def load_motions(spec: dict, data: str | None, body) -> dict:
-    """--data: captured scans (``scans=DIR``, scan_completion.py) or motions (table_run.load_motions)."""
+    """--data: captured scans (``scans=DIR``, scan_completion.py) or motions (:func:`benchmark.table_data.load_motions`)."""
     if data and data.startswith("scans="):
         from benchmark.protocols.scan_completion import load_scan_sequences
 
         return load_scan_sequences(spec, data)
-    from benchmark.protocols.table_run import load_motions as load_motion_files
+    from benchmark.table_data import load_motions as load_motion_files
 
     return load_motion_files(data, float(spec["data"]["window_s"]), body)
 

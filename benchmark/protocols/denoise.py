@@ -43,13 +43,13 @@ import torch
 from benchmark.degrade import fingerprint
 from benchmark.metrics.pose import mean_acceleration, mpjpe
 from benchmark.observations import NoisyJoints, make_noisy_joints, virtual_marker_indices
-from benchmark.protocols.completion_unit import stable_seed
+from benchmark.protocols.base import na_result
 from benchmark.protocols.motion_fit import (
-    MotionSource, MotionTargets, Timer, decode_parameters, fit_motion, has_motion_encoder,
-    init_motion_state, is_interpolation_baseline, joints_of, load_table_motions, objective_value, unit_result,
-    v2v_sums,
+    MotionSource, MotionTargets, Timer, decode_parameters, fit_motion, init_motion_state,
+    is_interpolation_baseline, joints_of, load_table_motions, objective_value, unit_result, v2v_sums,
 )
-from benchmark.protocols.table_run import na_result
+from benchmark.table_data import stable_seed
+from priors.base import has_motion_encoder
 
 MODES = ("regression", "optimisation")
 NO_REGRESSION = ("regression needs one forward pass: the prior has neither denoise_motion nor an encoder "

@@ -43,10 +43,11 @@ import torch
 from benchmark.interpolate import lerp_frames, slerp_frames
 from benchmark.metrics.pose import acceleration_error, mean_acceleration, mpjpe, pa_mpjpe
 from benchmark.protocols.motion_fit import (
-    MotionSource, MotionTargets, Timer, decode_parameters, fit_motion, has_motion_encoder, init_motion_state,
+    MotionSource, MotionTargets, Timer, decode_parameters, fit_motion, init_motion_state,
     is_interpolation_baseline, joints_of, load_table_motions, objective_value, quaternion_loss, tensor_fingerprint,
     unit_result,
 )
+from priors.base import has_motion_encoder
 
 
 def context_frames(spec: dict) -> int:

@@ -8,8 +8,8 @@ Three parts:
    tables: it is the ground truth's, given to the fit and never optimised.
 2. Fitting a prior to observed targets (:func:`fit_motion`): joint positions, virtual-marker vertices
    and/or local rotations at observed frames. It reuses the completion protocol's fit state
-   (:class:`benchmark.protocols.completion.FitState`, :func:`~benchmark.protocols.completion.init_state`,
-   :func:`~benchmark.protocols.completion.body_parameters`), so the free rigid parameters, window kinds
+   (:class:`benchmark.protocols.fit_state.FitState`, :func:`~benchmark.protocols.fit_state.init_state`,
+   :func:`~benchmark.protocols.fit_state.body_parameters`), so the free rigid parameters, window kinds
    and interpolation are exactly table1's: per-frame priors get one latent per observed frame and are
    SLERPed to other times; fixed-window priors are decoded on their own grid and SLERPed; continuous
    priors decode any timestamp; per-observed-frame root orientation / translation where the prior
@@ -46,10 +46,9 @@ from dataclasses import dataclass, field
 import roma
 import torch
 
-from benchmark.protocols.completion import FitState, body_parameters, init_state, optimise
-from benchmark.protocols.fit_state import set_rigid
+from benchmark.protocols.fit_state import FitState, body_parameters, init_state, optimise, set_rigid
 from benchmark.skeleton import NUM_JOINTS
-from priors.base import FitBatch, has_motion_encoder  # noqa: F401  (has_motion_encoder: re-exported)
+from priors.base import FitBatch, has_motion_encoder
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +123,7 @@ def motion_shapes(body, motions, dtype, device) -> torch.Tensor:
         s = torch.as_tensor(s).reshape(-1)
         if s.numel() != body.shape_dim:
             raise ValueError(f"motion {m.source or '?'}: its shape vector has {s.numel()} values, body {body.name!r} "
-                             f"takes {body.shape_dim}; load motions through benchmark.protocols.table_run.load_motions "
+                             f"takes {body.shape_dim}; load motions through benchmark.table_data.load_motions "
                              "(which fits shapes to the body)")
         rows.append(s.to(device=device, dtype=dtype))
     return torch.stack(rows)
@@ -141,8 +140,9 @@ def table_window(spec: dict) -> tuple[float, float, float]:
 
 
 def load_table_motions(spec: dict, data, body, longest_window_s: float | None = None) -> dict:
-    """The test motions of a motion table: table_run.load_motions, long enough for the window."""
-    from benchmark.protocols.table_run import load_motions
+    """The test motions of a motion table: :func:`benchmark.table_data.load_motions`, long enough
+    for the window."""
+    from benchmark.table_data import load_motions
 
     _, start, window = table_window(spec)
     return load_motions(data, start + (longest_window_s or window), body)
@@ -457,7 +457,7 @@ def objective_value(spec: dict, key: str, default=None):
 
 __all__ = [
     "CleanBatch", "MotionSource", "MotionTargets", "Timer", "data_term", "decode_parameters",
-    "device_name", "fit_motion", "free_parameters", "global_rotations", "has_motion_encoder", "init_motion_state",
+    "device_name", "fit_motion", "free_parameters", "global_rotations", "init_motion_state",
     "is_interpolation_baseline", "joints_of", "load_table_motions", "motion_shapes", "quaternion_loss",
     "set_rigid_from_observation", "table_window", "tensor_fingerprint", "unit_result", "v2v_sums",
 ]

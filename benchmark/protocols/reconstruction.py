@@ -33,10 +33,10 @@ import torch
 
 from benchmark.metrics.pose import acceleration_error, mean_acceleration, mpjpe, pa_mpjpe
 from benchmark.protocols.motion_fit import (
-    MotionSource, MotionTargets, Timer, decode_parameters, has_motion_encoder,
-    init_motion_state, is_interpolation_baseline, joints_of, load_table_motions, tensor_fingerprint, unit_result,
-    v2v_sums,
+    MotionSource, MotionTargets, Timer, decode_parameters, init_motion_state, is_interpolation_baseline,
+    joints_of, load_table_motions, tensor_fingerprint, unit_result, v2v_sums,
 )
+from priors.base import has_motion_encoder
 
 NO_ENCODER = "no encoder: the prior cannot encode a motion (has_encoder is False or encode_motion is missing)"
 

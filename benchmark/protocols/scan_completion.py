@@ -114,7 +114,8 @@ class ScanCompletionData:
         return (points + w * (other[nn] - points)).astype(np.float32)
 
     def unit_data(self, sequence_ids: list[str]):
-        from benchmark.protocols.unit_data import UnitData, stable_seed
+        from benchmark.protocols.unit_data import UnitData
+        from benchmark.table_data import stable_seed
 
         key = tuple(sequence_ids)
         if key in self._cache:

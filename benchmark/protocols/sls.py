@@ -64,8 +64,8 @@ per sequence, the root-orientation and facing errors, a backwards flag, the fina
 their decrease over the last 10 % of the steps (:mod:`benchmark.fit_diagnostics`).
 
 Variables: the adapter's latents, the body shape and the free rigid parameters that
-:func:`benchmark.protocols.completion.init_state` gives the adapter (per-observed-anchor root
-orientation / translation, or a heading and offset). :func:`~benchmark.protocols.completion.init_state`
+:func:`benchmark.protocols.fit_state.init_state` gives the adapter (per-observed-anchor root
+orientation / translation, or a heading and offset). :func:`~benchmark.protocols.fit_state.init_state`
 sees a :class:`~priors.base.FitBatch` whose points are each observed anchor's first
 ``objective.init_scan_points`` (1000) scan points (i.i.d. uniform samples, so an unbiased subset; it
 bounds the cost of the heading search) followed by its 16 landmarks (so p = 0 still has points for
@@ -76,8 +76,8 @@ cosine schedule to 10 % of ``objective.lr`` over the profile's steps.
 Decoding the anchors: an adapter with ``decode_anchors(latents, shape) -> (Decoded (B, 100, ...),
 tau_hat (B, 100))`` gives anchor i directly (the structured latent space's representation) and
 its timestamp; the free rigid parameters are applied on top as in
-:func:`~benchmark.protocols.completion.body_parameters`. Any other adapter is decoded at the anchor
-timestamps through ``completion.body_parameters`` (per-frame priors at the observed anchors, then
+:func:`~benchmark.protocols.fit_state.body_parameters`. Any other adapter is decoded at the anchor
+timestamps through ``fit_state.body_parameters`` (per-frame priors at the observed anchors, then
 SLERP/LERP; fixed-window priors on their grid covering the cycle; continuous priors directly).
 
 Metric: at all 100 anchors, the vertex Chamfer (mm) between the completed anchor mesh and the
@@ -110,12 +110,16 @@ import torch
 
 from benchmark.degrade import degrade, fingerprint
 from benchmark.metrics.static_chamfer import StaticChamfer
-from benchmark.observations import Landmarks, PointCloudSequence, ground_truth_at, sample_surface
+from benchmark.observations import Landmarks, PointCloudSequence, ground_truth_at
 from benchmark.fit_diagnostics import sequence_diagnostics
-from benchmark.protocols.completion import (FitState, apply_free_rigid, body_parameters, facing_search, init_state,
-                                              optimise, parameter_groups)
-from benchmark.protocols.completion_unit import UnitData, _loss_vertices, evaluate, stable_seed
+from benchmark.protocols.completion_unit import evaluate, loss_vertex_count
+from benchmark.protocols.facing import facing_search
+from benchmark.protocols.fit_state import (FitState, apply_free_rigid, body_parameters, init_state, optimise,
+                                           parameter_groups)
+from benchmark.protocols.unit_data import UnitData
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from benchmark.surface_sampling import sample_surface
+from benchmark.table_data import stable_seed
 from benchmark.unit_arrays import ground_truth_pose
 from priors.base import FitBatch, PriorAdapter
 
@@ -257,7 +261,7 @@ def load_motions(spec: dict, data: str | None, body) -> dict:
 
 def source_motions(data: str | None, body) -> dict:
     """The whole test motions by id (the synthetic test split, or ``--data``); tests replace this."""
-    from benchmark.protocols.table_run import load_motions as load_table_motions
+    from benchmark.table_data import load_motions as load_table_motions
 
     return load_table_motions(data, 0.0, body)
 
@@ -557,7 +561,7 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: SlsData, de
     g = torch.Generator().manual_seed(unit.seed)
     t0 = time.perf_counter()
     state, info = fit_sls(adapter, body, obs, data.anchor_t, int(profile["steps"]), spec["objective"], g, device,
-                          loss_vertices=_loss_vertices(profile))
+                          loss_vertices=loss_vertex_count(profile))
     t1 = time.perf_counter()
     with torch.no_grad():
         rot, trans, tau_hat = decode_anchors(state, data.anchor_t.to(device), None)

@@ -1,18 +1,13 @@
-"""The inputs of a completion work unit and the seeds derived from its coordinates; shared by the
-synthetic (:mod:`benchmark.protocols.completion_unit`) and captured-scan
-(:mod:`benchmark.protocols.scan_completion`) data sources, which import it and not each other."""
+"""The inputs of a completion work unit; shared by the synthetic
+(:mod:`benchmark.protocols.completion_unit`) and captured-scan
+(:mod:`benchmark.protocols.scan_completion`) data sources, which import it and not each other (the
+seeds derived from a unit's coordinates: :func:`benchmark.table_data.stable_seed`)."""
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, field
 
 import torch
-
-
-def stable_seed(*parts) -> int:
-    h = hashlib.sha256("|".join(str(p) for p in parts).encode()).digest()
-    return int.from_bytes(h[:4], "little")
 
 
 @dataclass

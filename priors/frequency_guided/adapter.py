@@ -9,15 +9,13 @@ from torch import nn
 
 from benchmark.interpolate import lerp_frames, slerp_frames
 from benchmark.skeleton import NUM_JOINTS
-from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
-from priors.frequency_guided.model import FPS, FRAMES, FrequencyGuidedNetwork, PAPER_CONFIG, _ExportModule
-from priors.frequency_guided.checkpoint import (
-    DEFAULT_WEIGHTS,
-    WHERE_TO_GET,
-    load_paper_weights,
-    load_project_checkpoint,
+from priors.base import (
+    Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionEncoder, PaperNetwork, PriorAdapter, Trainable, WindowSpec,
 )
-from priors.training import embedded_out_dir, embedded_weights
+from priors.frequency_guided import checkpoint
+from priors.frequency_guided.model import FPS, FRAMES, FrequencyGuidedNetwork, PAPER_CONFIG, _ExportModule
+from priors.frequency_guided.checkpoint import DEFAULT_WEIGHTS, WHERE_TO_GET
+from priors.training import embedded_out_dir
 
 
 def n_windows_for(window_s: float, frames: int = FRAMES, fps: float = FPS) -> int:
@@ -26,7 +24,7 @@ def n_windows_for(window_s: float, frames: int = FRAMES, fps: float = FPS) -> in
 
 
 # -- the adapter -------------------------------------------------------------------------------
-class FrequencyGuidedPrior(PriorAdapter):
+class FrequencyGuidedPrior(MotionEncoder, ExportableDecoder, PaperNetwork, Trainable, PriorAdapter):
     """Xu et al.'s motion prior: one latent per 128-frame window at 30 fps (module docstring).
 
     Latents ``{"z": (B, n_windows, L)}`` (L = 256 paper, 128 embedded), initialised from N(0, I);
@@ -43,26 +41,18 @@ class FrequencyGuidedPrior(PriorAdapter):
     heading_normalised = True
     joints = tuple(range(NUM_JOINTS))
     shape_conditioned = False
-    has_encoder = True
     sixd_layout = "interleaved"
     frozen_network = "network"
+    default_weights = DEFAULT_WEIGHTS
 
     def __init__(self, size: str = "embedded", weights=None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=None if weights is None else str(weights), device=device)
-        if size == "paper":
-            if weights is None:
-                raise ValueError(f"frequency-guided size 'paper' needs the official weights: {WHERE_TO_GET}")
-            self.network = FrequencyGuidedNetwork(PAPER_CONFIG)
-            self.checkpoint = load_paper_weights(weights, self.network)
-            self.weights_path = f"{self.checkpoint['motion_prior_file']},{self.checkpoint['vposer_file']}"
-        elif size == "embedded":
-            path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS,
-                                    f"or use size='paper' with the official weights ({WHERE_TO_GET})")
-            self.network = load_project_checkpoint(path)
-            self.checkpoint = {"file": str(path)}
-            self.weights_path = str(path)
-        else:
-            raise ValueError(f"frequency-guided: unknown size {size!r}; expected 'embedded' or 'paper'")
+        if size == "paper" and weights is None:
+            raise ValueError(f"frequency-guided size 'paper' needs the official weights: {WHERE_TO_GET}")
+        if size == "embedded":
+            weights = self.embedded_weights(weights, f"or use size='paper' with the official weights ({WHERE_TO_GET})")
+        self.network, self.checkpoint = checkpoint.load(weights, size)
+        self.weights_path = self.checkpoint.weights_path
         self.freeze_network(device)
 
     @classmethod
@@ -77,10 +67,6 @@ class FrequencyGuidedPrior(PriorAdapter):
     @property
     def frames(self) -> int:
         return self.network.motion_prior.frames
-
-    @property
-    def device(self) -> torch.device:
-        return self.network.rest_joints.device
 
     def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """``{"z": (B, n_windows, L)}`` from N(0, I), n_windows = ceil(window_s * 30 / 128)."""

@@ -1,5 +1,7 @@
-"""Frequency-guided checkpoints, read strictly: the official ``pretrained_priorD.pth`` + VPoser v1.0
-``TR00_E096.pt`` pair (paper size) and the project's ``priors/weights/frequency_guided.pt`` (embedded size).
+"""Frequency-guided checkpoints, read strictly by :func:`load` (``load(path, size) -> (network,
+CheckpointReport)``): the official ``pretrained_priorD.pth`` + VPoser v1.0 ``TR00_E096.pt`` pair
+(paper size) and the project's ``priors/weights/frequency_guided.pt`` (embedded size), both through
+:func:`priors.checkpoints.load_state_strict`.
 """
 
 from __future__ import annotations
@@ -7,15 +9,9 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import torch
-
-from benchmark.safe_loading import torch_load_weights
-from priors.vposer.checkpoint import (
-    V1_WHERE_TO_GET as VPOSER_V1_WHERE,
-    is_vposer_v1_state,
-    load_vposer_v1_state,
-    torch_load_cpu,
-)
+from benchmark.safe_loading import STATE_DICT_FIX, torch_load_weights
+from priors.checkpoints import CheckpointReport, check_size, load_state_strict
+from priors.vposer.checkpoint import V1_WHERE_TO_GET as VPOSER_V1_WHERE, is_vposer_v1_state, load_vposer_v1_state
 from priors.frequency_guided.model import FrequencyGuidedNetwork, MotionPrior, PAPER_CONFIG
 
 log = logging.getLogger(__name__)
@@ -35,47 +31,35 @@ TRAIN_COMMAND = "python -m benchmark train frequency-guided  (or: python -m prio
 
 
 # -- checkpoint loading ------------------------------------------------------------------------
-def _strip_ddp(state: dict, file) -> dict:
+def _motion_prior_hint(missing: list[str], unexpected: list[str]) -> str:
+    if any("bodyprior_enc_bn1" in k for k in unexpected):
+        return f" (this looks like VPoser v1.0 {OFFICIAL_VPOSER_NAME}, not the motion prior)"
+    if any(k.endswith(".weight") and k.removeprefix(DDP_PREFIX)[:-7] + ".weight_v" in missing for k in unexpected):
+        return " (plain 'weight' where weight_g/weight_v are expected: the file was saved without weight norm)"
+    return ""
+
+
+def load_motion_prior_state(state: object, model: MotionPrior, file="<state dict>") -> CheckpointReport:
+    """Copy the official ``pretrained_priorD.pth`` content into ``model`` strictly
+    (:func:`priors.checkpoints.load_state_strict`; every key carries the DDP prefix ``module.``).
+
+    Every MotionPrior key (unused layers included; BatchNorm ``num_batches_tracked`` optional) must be
+    present with its shape, and nothing else.
+    """
     if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
         state = state["state_dict"]
     if not isinstance(state, dict) or not state or not all(isinstance(k, str) for k in state):
         raise ValueError(f"{file}: not a state dict of Xu et al.'s MotionPrior (expected {OFFICIAL_PRIOR_NAME}); found {type(state).__name__}")
     pref = [k.startswith(DDP_PREFIX) for k in state]
-    if all(pref):
-        return {k[len(DDP_PREFIX):]: v for k, v in state.items()}
-    if any(pref):
+    if any(pref) and not all(pref):
         raise KeyError(f"{file}: some keys start with {DDP_PREFIX!r} and some do not, e.g. "
                        f"{[k for k in state if not k.startswith(DDP_PREFIX)][:5]}: not a plain DDP state dict")
-    return dict(state)
-
-
-def load_motion_prior_state(state: object, model: MotionPrior, file="<state dict>") -> list[str]:
-    """Copy the official ``pretrained_priorD.pth`` content into ``model`` strictly (``module.`` stripped).
-
-    Every MotionPrior key (unused layers included; BatchNorm ``num_batches_tracked`` optional) must be
-    present with its shape, and nothing else. Returns the loaded keys (unprefixed).
-    """
-    raw = _strip_ddp(state, file)
-    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
-    missing = [k for k in expected if k not in raw and not k.endswith("num_batches_tracked")]
-    unexpected = sorted(k for k in raw if k not in expected)
-    if missing or unexpected:
-        hint = ""
-        if any(k.startswith("bodyprior_enc_bn1") for k in unexpected):
-            hint = f" (this looks like VPoser v1.0 {OFFICIAL_VPOSER_NAME}, not the motion prior)"
-        elif any(k.endswith(".weight") and k[:-7] + ".weight_v" in expected for k in unexpected):
-            hint = " (plain 'weight' where weight_g/weight_v are expected: the file was saved without weight norm)"
-        raise KeyError(
-            f"{file}: MotionPrior state dict does not match the paper network: missing keys {missing}, "
-            f"unexpected keys {unexpected}{hint}. Expected the 'module.'-prefixed {OFFICIAL_PRIOR_NAME}; {WHERE_TO_GET}"
-        )
-    bad = [f"{DDP_PREFIX}{k}: file {tuple(raw[k].shape) if torch.is_tensor(raw[k]) else type(raw[k]).__name__}, expected {s}"
-           for k, s in expected.items() if k in raw and (not torch.is_tensor(raw[k]) or tuple(raw[k].shape) != s)]
-    if bad:
-        raise ValueError(f"{file}: MotionPrior shape mismatch (paper config {PAPER_CONFIG}): {bad}")
-    mapped = {k: raw[k] for k in expected if k in raw}
-    model.load_state_dict(mapped, strict=False)
-    return sorted(mapped)
+    loaded, _ = load_state_strict(
+        model, state, file, "MotionPrior", prefix=DDP_PREFIX if all(pref) else "",
+        optional=lambda k: k.endswith("num_batches_tracked"), hint=_motion_prior_hint,
+        note=f"the paper network (config {PAPER_CONFIG}); expected the 'module.'-prefixed {OFFICIAL_PRIOR_NAME}; {WHERE_TO_GET}",
+    )
+    return CheckpointReport(file=Path(str(file)), format="official-motion-prior", loaded=loaded)
 
 
 def _looks_like_motion_prior(state) -> bool:
@@ -125,10 +109,10 @@ def resolve_paper_weights(weights) -> tuple[Path, Path]:
     return parts[0], parts[1]
 
 
-def load_paper_weights(weights, network: FrequencyGuidedNetwork) -> dict:
-    """Load the official pair into a paper-size network strictly; returns a report dict."""
+def _load_paper(weights) -> tuple[FrequencyGuidedNetwork, CheckpointReport]:
+    """The official pair, read strictly into a paper-size network (the files are read first)."""
     a, b = resolve_paper_weights(weights)
-    sa, sb = torch_load_cpu(a), torch_load_cpu(b)
+    sa, sb = torch_load_weights(a, STATE_DICT_FIX), torch_load_weights(b, STATE_DICT_FIX)
     if _looks_like_motion_prior(sb) and not _looks_like_motion_prior(sa):
         a, b, sa, sb = b, a, sb, sa
     if not _looks_like_motion_prior(sa):
@@ -140,13 +124,16 @@ def load_paper_weights(weights, network: FrequencyGuidedNetwork) -> dict:
     if not is_vposer_v1_state(sb):
         keys = list(sb)[:8] if isinstance(sb, dict) else type(sb).__name__
         raise KeyError(f"{b}: not VPoser v1.0 (no 'bodyprior_enc_bn1.weight' key; first keys {keys}). {VPOSER_V1_WHERE}")
-    mp_keys = load_motion_prior_state(sa, network.motion_prior, a)
-    vp_keys = load_vposer_v1_state(sb, network.vposer, b)
-    log.info("frequency-guided paper weights: motion prior %s (%d tensors), VPoser v1 %s (%d tensors)", a, len(mp_keys), b, len(vp_keys))
-    return {"motion_prior_file": str(a), "vposer_file": str(b), "motion_prior_keys": len(mp_keys), "vposer_keys": len(vp_keys)}
+    network = FrequencyGuidedNetwork(PAPER_CONFIG)
+    mp = load_motion_prior_state(sa, network.motion_prior, a)
+    vp = load_vposer_v1_state(sb, network.vposer, b)
+    log.info("frequency-guided paper weights: motion prior %s (%d tensors), VPoser v1 %s (%d tensors)", a, len(mp.loaded), b, len(vp.loaded))
+    return network, CheckpointReport(file=a, files=[a, b], format="official-pair", config=dict(PAPER_CONFIG),
+                                     loaded=[f"motion_prior.{k}" for k in mp.loaded] + [f"vposer.{k}" for k in vp.loaded],
+                                     parts={"motion_prior": mp, "vposer": vp})
 
 
-def load_project_checkpoint(path: str | Path) -> FrequencyGuidedNetwork:
+def _load_project(path: str | Path) -> tuple[FrequencyGuidedNetwork, CheckpointReport]:
     """The embedded network from ``priors/weights/frequency_guided.pt`` (strict)."""
     path = Path(path)
     if path.is_dir() or "," in str(path):
@@ -159,12 +146,18 @@ def load_project_checkpoint(path: str | Path) -> FrequencyGuidedNetwork:
     if not need <= set(cfg):
         raise ValueError(f"{path}: field 'config' lacks {sorted(need - set(cfg))}; retrain: {TRAIN_COMMAND}")
     net = FrequencyGuidedNetwork({k: cfg[k] for k in PAPER_CONFIG})
-    sd = ckpt["state_dict"]
-    expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
-    missing = [k for k in expected if k not in sd and not k.endswith("num_batches_tracked")]
-    unexpected = sorted(k for k in sd if k not in expected)
-    bad = [f"{k}: file {tuple(sd[k].shape)}, expected {s}" for k, s in expected.items() if k in sd and tuple(sd[k].shape) != s]
-    if missing or unexpected or bad:
-        raise KeyError(f"{path}: does not match its config {cfg}: missing {missing}, unexpected {unexpected}, shape mismatches {bad}")
-    net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in sd.items()}, strict=False)
-    return net
+    loaded, _ = load_state_strict(net, ckpt["state_dict"], path, "frequency-guided",
+                                  optional=lambda k: k.endswith("num_batches_tracked"), note=f"its config {cfg}")
+    return net, CheckpointReport(file=path, format="project", config=dict(cfg), loaded=loaded)
+
+
+def load(path, size: str = "embedded") -> tuple[FrequencyGuidedNetwork, CheckpointReport]:
+    """The frequency-guided network of a checkpoint, strictly loaded, and what was read.
+
+    size "paper": the official pair (a folder holding ``pretrained_priorD.pth`` and ``TR00_E096.pt``,
+    ``"prior.pth,vposer.pt"`` in either order, or a pair of paths; each file is recognised by its
+    keys) into the paper-size network; size "embedded": the project's file
+    (``priors/weights/frequency_guided.pt``) at the size its config says.
+    """
+    check_size("frequency-guided", size)
+    return _load_paper(path) if size == "paper" else _load_project(path)

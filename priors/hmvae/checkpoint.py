@@ -40,7 +40,7 @@ from __future__ import annotations
 import logging
 import pickle
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +48,7 @@ import torch
 from torch import nn
 
 from benchmark.safe_loading import UnsafeFileError, torch_load_weights
+from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.hmvae.model import PAPER_CONFIG, HMVAE, HMVAEConfig
 from priors.hmvae.skeleton import PARENTS24, frozen_parameter_names
 from priors.hmvae.trajectory import PAPER_TRAJECTORY_CONFIG, TrajectoryConfig, TrajectoryModel
@@ -65,13 +66,10 @@ POS_DIMS = slice(360, 432)
 VEL_DIMS = slice(576, 579)
 
 
-@dataclass
-class LoadReport:
-    file: Path
-    format: str  # "official-legacy" or "project"
-    config: dict
-    loaded: list[str] = field(default_factory=list)
-    dropped: list[str] = field(default_factory=list)
+VAE_FILE = "hmvae.pt"
+TRAJECTORY_FILE = "hmvae_trajectory.pt"
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / VAE_FILE  # hmvae_trajectory.pt beside it
+TRAIN_COMMAND = "python -m benchmark train hmvae  (or: python -m priors.hmvae.train --out priors/weights)"
 
 
 # -- files -----------------------------------------------------------------------------------
@@ -196,36 +194,20 @@ def drop_duplicate_encoder(sd: dict, file: Path) -> tuple[dict, list[str]]:
     return {k: v for k, v in sd.items() if not k.startswith("dec.enc.")}, dup
 
 
-def load_strict(model: nn.Module, sd: dict, file: Path, what: str, frozen_optional: bool = False) -> list[str]:
-    """Strictly load ``sd`` into ``model``: every key, every shape, no leftovers, frozen tensors equal.
+FIXED_NOTE = ("a skeleton mask / pooling matrix is rebuilt from the 24-joint HM-VAE skeleton (skeleton_dist 2); "
+              "the checkpoint uses another topology")
 
-    ``frozen_optional``: the frozen masks / pooling matrices may be absent (project files).
-    Returns the loaded keys.
-    """
-    expected = model.state_dict()
+
+def _load_strict(model: nn.Module, sd: dict, file: Path, what: str, frozen_optional: bool = False) -> list[str]:
+    """:func:`priors.checkpoints.load_state_strict` with HM-VAE's fixed tensors: every key, every
+    shape, no leftovers, the frozen masks / pooling matrices equal to the model's (absent is
+    allowed with ``frozen_optional``: project files). Returns the loaded keys."""
     frozen = frozen_parameter_names(model)
-    unexpected = sorted(k for k in sd if k not in expected)
-    if unexpected:
-        raise KeyError(
-            f"{file}: unexpected key {unexpected[0]!r} (and {len(unexpected) - 1} more) for the {what}; expected only "
-            f"keys like {sorted(expected)[:3]}...; is this the right model (VAE vs trajectory, len-64 vs len-8)?"
-        )
-    for key, ref in expected.items():
-        if key not in sd:
-            if frozen_optional and key in frozen:
-                continue
-            raise KeyError(f"{file}: missing key {key!r} (expected shape {tuple(ref.shape)}) for the {what}; the checkpoint "
-                           "must hold every tensor of the model (see priors/hmvae/checkpoint.py)")
-        t = sd[key]
-        if not torch.is_tensor(t) or tuple(t.shape) != tuple(ref.shape):
-            found = tuple(t.shape) if torch.is_tensor(t) else type(t).__name__
-            raise ValueError(f"{file}: key {key!r} has shape {found}, expected {tuple(ref.shape)} for the {what} "
-                             f"({getattr(model, 'config', '')}); is this the right size?")
-        if key in frozen and not torch.equal(t.to(ref.dtype), ref):
-            raise ValueError(f"{file}: fixed tensor {key!r} (skeleton mask / pooling matrix) differs from the one rebuilt from "
-                             "the 24-joint HM-VAE skeleton (skeleton_dist 2); the checkpoint uses another topology")
-    model.load_state_dict({k: v for k, v in sd.items()}, strict=False)
-    return sorted(sd)
+    loaded, _ = load_state_strict(
+        model, sd, file, what, optional=frozen if frozen_optional else (), fixed=frozen, fixed_note=FIXED_NOTE,
+        note=f"config {getattr(model, 'config', '')}; is this the right model (VAE vs trajectory, len-64 vs len-8) and size?",
+    )
+    return loaded
 
 
 def infer_vae_config(sd: dict, file: Path, world_up: str = "z") -> HMVAEConfig:
@@ -241,24 +223,24 @@ def infer_vae_config(sd: dict, file: Path, world_up: str = "z") -> HMVAEConfig:
     return HMVAEConfig(**{**PAPER_CONFIG.to_dict(), "shallow_latent_d": s0[0] // 2, "latent_d": s3[0] // 2, "world_up": world_up})
 
 
-def load_official_vae(path: str | Path) -> tuple[HMVAE, LoadReport]:
+def _official_vae(path: str | Path) -> tuple[HMVAE, CheckpointReport]:
     """An official ``gen_XXXXXXXX.pt`` (file or folder) -> HMVAE (z-up world), strictly."""
     file = resolve_checkpoint_file(path, "HM-VAE")
     sd = _state_dict_of(_torch_load(file), file, "HM-VAE")
     sd, dropped = drop_duplicate_encoder(sd, file)
     cfg = infer_vae_config(sd, file, world_up="z")
     model = HMVAE(cfg)
-    loaded = load_strict(model, sd, file, "HM-VAE len-64 model")
+    loaded = _load_strict(model, sd, file, "HM-VAE len-64 model")
     log.info("HM-VAE official weights %s: %d tensors, dropped %d duplicate dec.enc.* keys", file, len(loaded), len(dropped))
-    return model, LoadReport(file=file, format="official-legacy", config=cfg.to_dict(), loaded=loaded, dropped=dropped)
+    return model, CheckpointReport(file=file, format="official-legacy", config=cfg.to_dict(), loaded=loaded, ignored=dropped)
 
 
-def load_official_trajectory(files: PaperFiles) -> tuple[TrajectoryModel, LoadReport]:
+def _official_trajectory(files: PaperFiles) -> tuple[TrajectoryModel, CheckpointReport]:
     """The official trajectory checkpoint + mean/std + skeleton offsets -> TrajectoryModel (z-up)."""
     file = files.trajectory
     sd = _state_dict_of(_torch_load(file), file, "HM-VAE trajectory")
     model = TrajectoryModel(TrajectoryConfig(**{**PAPER_TRAJECTORY_CONFIG.to_dict(), "world_up": "z"}))
-    loaded = load_strict(model, sd, file, "HM-VAE trajectory model")
+    loaded = _load_strict(model, sd, file, "HM-VAE trajectory model")
     ms = _load_plain_array(files.mean_std)
     if ms.ndim != 2 or ms.shape[0] != 2 or ms.shape[1] < VEL_DIMS.stop:
         raise ValueError(f"{files.mean_std}: expected the official (2, 579) mean/std array, got shape {ms.shape}")
@@ -269,7 +251,7 @@ def load_official_trajectory(files: PaperFiles) -> tuple[TrajectoryModel, LoadRe
     for j, p in enumerate(PARENTS24):  # parent-relative offsets -> rest positions (root at its offset)
         rest[j] = off[j] if p < 0 else rest[p] + off[j]
     model.set_statistics(ms[0, POS_DIMS], ms[1, POS_DIMS], ms[0, VEL_DIMS], ms[1, VEL_DIMS], rest)
-    return model, LoadReport(file=file, format="official-legacy", config=model.config.to_dict(), loaded=loaded)
+    return model, CheckpointReport(file=file, format="official-legacy", config=model.config.to_dict(), loaded=loaded)
 
 
 # -- project files ---------------------------------------------------------------------------
@@ -294,28 +276,79 @@ def _project_payload(path: Path, kind: str) -> tuple[dict, dict]:
     return sd, cfg
 
 
-def load_project_vae(path: str | Path) -> tuple[HMVAE, LoadReport]:
+def _project_vae(path: str | Path) -> tuple[HMVAE, CheckpointReport]:
     path = Path(path)
     sd, cfg = _project_payload(path, "HM-VAE")
     if cfg.get("kind") != "hmvae":
         raise ValueError(f"{path}: config.kind is {cfg.get('kind')!r}, expected 'hmvae' (is this the trajectory file?)")
     model = HMVAE(HMVAEConfig.from_dict(cfg["model"]))
-    loaded = load_strict(model, sd, path, "HM-VAE", frozen_optional=True)
-    return model, LoadReport(file=path, format="project", config=cfg, loaded=loaded)
+    loaded = _load_strict(model, sd, path, "HM-VAE", frozen_optional=True)
+    return model, CheckpointReport(file=path, format="project", config=cfg, loaded=loaded)
 
 
-def load_project_trajectory(path: str | Path) -> tuple[TrajectoryModel, LoadReport]:
+def _project_trajectory(path: str | Path) -> tuple[TrajectoryModel, CheckpointReport]:
     path = Path(path)
     sd, cfg = _project_payload(path, "HM-VAE trajectory")
     if cfg.get("kind") != "hmvae-trajectory":
         raise ValueError(f"{path}: config.kind is {cfg.get('kind')!r}, expected 'hmvae-trajectory'")
     model = TrajectoryModel(TrajectoryConfig.from_dict(cfg["model"]))
-    loaded = load_strict(model, sd, path, "HM-VAE trajectory model", frozen_optional=True)
+    loaded = _load_strict(model, sd, path, "HM-VAE trajectory model", frozen_optional=True)
     st = cfg.get("statistics")
     if not isinstance(st, dict):
         raise ValueError(f"{path}: config.statistics (standardisation and FK skeleton) is missing; retrain the trajectory model")
     model.set_statistics(st["pos_mean"], st["pos_std"], st["vel_mean"], st["vel_std"], st["rest_joints"])
-    return model, LoadReport(file=path, format="project", config=cfg, loaded=loaded)
+    return model, CheckpointReport(file=path, format="project", config=cfg, loaded=loaded)
+
+
+def resolve_embedded_files(path: str | Path, trajectory: bool) -> tuple[Path, Path]:
+    """(VAE file, trajectory file) of a size-"embedded" ``weights`` value: a file (the trajectory
+    model beside it as hmvae_trajectory.pt), ``VAE,TRAJ``, or a folder holding hmvae.pt and
+    hmvae_trajectory.pt. The trajectory file must exist only when ``trajectory``."""
+    parts = [s.strip() for s in str(path).split(",") if s.strip()]
+    first = Path(parts[0]).expanduser()
+    if first.is_dir():
+        vae_file, traj_file = first / VAE_FILE, first / TRAJECTORY_FILE
+    else:
+        vae_file = first
+        traj_file = Path(parts[1]).expanduser() if len(parts) > 1 else first.parent / TRAJECTORY_FILE
+    needed = [vae_file] + ([traj_file] if trajectory else [])
+    missing = [str(p) for p in needed if not p.is_file()]
+    if missing:
+        raise FileNotFoundError(
+            f"embedded HM-VAE weights not found: {missing}. Train them with `{TRAIN_COMMAND}` "
+            "(writes hmvae.pt and hmvae_trajectory.pt), or use size='paper' with a checkpoint of the official trainer"
+        )
+    return vae_file, traj_file
+
+
+def load(path: str | Path, size: str = "embedded", trajectory: bool = False) -> tuple[nn.Module, CheckpointReport]:
+    """The HM-VAE network(s) of a checkpoint, strictly loaded, and what was read.
+
+    size "paper": checkpoints written by the official trainer (module docstring: ``PATH`` or
+    ``VAE,TRAJ``); size "embedded": the project's files (:func:`resolve_embedded_files`). Returns the
+    :class:`~priors.hmvae.model.HMVAE`, or with ``trajectory`` an ``nn.ModuleDict`` of ``"vae"`` and
+    ``"trajectory"`` (a :class:`~priors.hmvae.trajectory.TrajectoryModel`). The report's ``parts``
+    hold the report of each network.
+    """
+    check_size("hmvae", size)
+    traj = rt = None
+    if size == "paper":
+        files = resolve_paper_weights(path, need_trajectory=trajectory)
+        vae, rv = _official_vae(files.vae)
+        if trajectory:
+            traj, rt = _official_trajectory(files)
+    else:
+        vae_file, traj_file = resolve_embedded_files(path, trajectory)
+        vae, rv = _project_vae(vae_file)
+        if trajectory:
+            traj, rt = _project_trajectory(traj_file)
+    parts = {"vae": rv, **({"trajectory": rt} if rt is not None else {})}
+    report = CheckpointReport(
+        file=rv.file, files=[r.file for r in parts.values()], format=rv.format, config=rv.config, parts=parts,
+        loaded=[f"{name}.{k}" for name, r in parts.items() for k in r.loaded],
+        ignored=[f"{name}.{k}" for name, r in parts.items() for k in r.ignored],
+    )
+    return (vae if traj is None else nn.ModuleDict({"vae": vae, "trajectory": traj})), report
 
 
 def save_official_format(path: str | Path, state_dict: dict) -> Path:
@@ -328,17 +361,16 @@ def save_official_format(path: str | Path, state_dict: dict) -> Path:
 
 __all__ = [
     "NO_RELEASE",
-    "LoadReport",
+    "VAE_FILE",
+    "TRAJECTORY_FILE",
+    "DEFAULT_WEIGHTS",
     "PaperFiles",
     "resolve_checkpoint_file",
     "resolve_paper_weights",
+    "resolve_embedded_files",
     "drop_duplicate_encoder",
-    "load_strict",
     "infer_vae_config",
-    "load_official_vae",
-    "load_official_trajectory",
     "learnable_state_dict",
-    "load_project_vae",
-    "load_project_trajectory",
+    "load",
     "save_official_format",
 ]

@@ -8,14 +8,17 @@ import torch
 from torch import nn
 
 from benchmark.skeleton import NUM_JOINTS
-from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
+from priors.base import (
+    Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionEncoder, PaperNetwork, PriorAdapter, Trainable, WindowSpec,
+)
+from priors.vposer import checkpoint
 from priors.vposer.model import NUM_BODY_JOINTS, PAPER_CONFIG, VPoser
-from priors.vposer.checkpoint import DEFAULT_WEIGHTS, WHERE_TO_GET, load_vposer_checkpoint, read_project_config
-from priors.training import embedded_out_dir, embedded_weights
+from priors.vposer.checkpoint import DEFAULT_WEIGHTS, WHERE_TO_GET
+from priors.training import embedded_out_dir
 
 
 # -- the adapter -----------------------------------------------------------------------------
-class VPoserSlerp(PriorAdapter):
+class VPoserSlerp(MotionEncoder, ExportableDecoder, PaperNetwork, Trainable, PriorAdapter):
     """VPoser+SLERP: one VPoser latent per observed frame; the protocol SLERPs between them.
 
     Latents: ``{"z": (B, n_observed, L)}``, initialised by a random sample of N(0, I) (paper 000
@@ -31,33 +34,22 @@ class VPoserSlerp(PriorAdapter):
     encodes_root_orientation = False
     joints = tuple(range(1, NUM_JOINTS))
     sixd_layout = "interleaved"
-    has_encoder = True
     frozen_network = "vposer"
+    default_weights = DEFAULT_WEIGHTS
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=weights, device=device)
-        if size == "paper":
-            if weights is None:
-                raise ValueError(f"vposer-slerp size 'paper' needs the official weights. {WHERE_TO_GET}")
-            self.vposer = VPoser(**PAPER_CONFIG)
-            self.checkpoint = load_vposer_checkpoint(weights, self.vposer)
-        elif size == "embedded":
-            path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS,
-                                    "or use size='paper' with the official V02_05.")
-            self.vposer = VPoser(**read_project_config(path))
-            self.checkpoint = load_vposer_checkpoint(path, self.vposer)
-        else:
-            raise ValueError(f"vposer-slerp: unknown size {size!r}; expected 'embedded' or 'paper'")
+        if size == "paper" and weights is None:
+            raise ValueError(f"vposer-slerp size 'paper' needs the official weights. {WHERE_TO_GET}")
+        if size == "embedded":
+            weights = self.embedded_weights(weights, "or use size='paper' with the official V02_05.")
+        self.vposer, self.checkpoint = checkpoint.load(weights, size)
         self.weights_path = str(self.checkpoint.file)
         self.freeze_network(device)
 
     @property
     def latent_dim(self) -> int:
         return self.vposer.latent
-
-    @property
-    def device(self) -> torch.device:
-        return next(self.vposer.parameters()).device
 
     def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """``{"z": (B, n_observed, L)}`` drawn from N(0, I) with ``generator`` (on its device)."""

@@ -1,24 +1,20 @@
-"""VPoser checkpoints, read strictly: the official V02_05 Lightning checkpoint and the project's
-``priors/weights/vposer.pt`` (:func:`load_vposer_checkpoint`), and the official v1.0 state dict
-``TR00_E096.pt`` (:func:`load_vposer_v1_state`).
+"""VPoser checkpoints, read strictly: :func:`load` (``load(path, size) -> (VPoser, CheckpointReport)``)
+reads the official V02_05 Lightning checkpoint and the project's ``priors/weights/vposer.pt``;
+:func:`load_vposer_v1_state` the official v1.0 state dict ``TR00_E096.pt`` (part of the
+frequency-guided prior's release). Both go through :func:`priors.checkpoints.load_state_strict`.
 """
 
 from __future__ import annotations
 
 import logging
 import re
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
-from benchmark.safe_loading import (
-    STATE_DICT_FIX,
-    is_lightning_bookkeeping,
-    torch_load_weights,
-    torch_load_with_stand_ins,
-)
-from priors.vposer.model import VPoser, VPoserV1
+from benchmark.safe_loading import is_lightning_bookkeeping, torch_load_weights, torch_load_with_stand_ins
+from priors.checkpoints import CheckpointReport, check_size, load_state_strict
+from priors.vposer.model import PAPER_CONFIG, VPoser, VPoserV1
 
 log = logging.getLogger(__name__)
 
@@ -33,27 +29,10 @@ WHERE_TO_GET = (
 
 
 # -- strict checkpoint loading ---------------------------------------------------------------
-def expected_keys(model: VPoser) -> dict[str, tuple[int, ...]]:
-    """The state-dict entries a VPoser checkpoint must hold, with their shapes (26 entries)."""
-    return {k: tuple(v.shape) for k, v in model.state_dict().items()}
-
-
-def optional_keys(model: VPoser) -> set[str]:
+def _optional(key: str) -> bool:
     """Entries loaded when present but not required: BatchNorm's ``num_batches_tracked`` counters
     (unused in eval mode; absent from checkpoints written by older torch versions)."""
-    return {k for k in model.state_dict() if k.endswith("num_batches_tracked")}
-
-
-@dataclass
-class CheckpointReport:
-    """What :func:`load_vposer_checkpoint` did."""
-
-    file: Path
-    format: str  # "official-lightning" or "project"
-    chosen_because: str
-    loaded: list[str] = field(default_factory=list)
-    ignored: list[str] = field(default_factory=list)
-    config: dict = field(default_factory=dict)
+    return key.endswith("num_batches_tracked")
 
 
 def resolve_checkpoint(path: str | Path) -> tuple[Path, str]:
@@ -108,15 +87,14 @@ def _torch_load(file: Path) -> object:
     return ckpt
 
 
-def read_state_dict(file: Path, model: VPoser) -> tuple[dict[str, torch.Tensor], list[str], str]:
-    """Map a checkpoint's tensors onto ``model``'s keys, strictly.
+def _load_state(ckpt: object, file: Path, model: VPoser) -> tuple[list[str], list[str], str]:
+    """Copy a checkpoint's tensors into ``model``, strictly (:func:`priors.checkpoints.load_state_strict`).
 
     Accepts the official Lightning checkpoint (``ckpt["state_dict"]``, keys ``vp_model.*``) and the
-    project's file (``{"state_dict": {...unprefixed...}, "config": {...}}``). Returns
-    (mapped state dict, sorted ignored keys, format). Every required key must be present with the
-    model's shape; anything else is ignored and listed.
+    project's file (``{"state_dict": {...unprefixed...}, "config": {...}}``). Returns (loaded keys,
+    sorted ignored keys, format). Every required key must be present with the model's shape;
+    anything else is ignored and listed.
     """
-    ckpt = _torch_load(file)
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt or not isinstance(ckpt["state_dict"], dict):
         top = sorted(ckpt)[:20] if isinstance(ckpt, dict) else type(ckpt).__name__
         raise ValueError(
@@ -125,56 +103,49 @@ def read_state_dict(file: Path, model: VPoser) -> tuple[dict[str, torch.Tensor],
         )
     raw = ckpt["state_dict"]
     official = any(k.startswith(OFFICIAL_PREFIX) for k in raw)
-    prefix = OFFICIAL_PREFIX if official else ""
     fmt = "official-lightning" if official else "project"
-    expected = expected_keys(model)
-    optional = optional_keys(model)
-    mapped, used = {}, set()
-    for key, shape in expected.items():
-        src = prefix + key
-        if src not in raw:
-            if key in optional:
-                continue
-            raise KeyError(
-                f"{file}: missing key {src!r} (expected shape {shape}); the VPoser V02_05 checkpoint must hold all of "
-                f"{sorted(prefix + k for k in expected if k not in optional)}"
-            )
-        t = raw[src]
-        if not torch.is_tensor(t) or tuple(t.shape) != shape:
-            found = tuple(t.shape) if torch.is_tensor(t) else type(t).__name__
-            raise ValueError(
-                f"{file}: key {src!r} has shape {found}, expected {shape} for VPoser(hidden={model.hidden}, "
-                f"latent={model.latent}); is this the right size (paper: hidden 512, latent 32)?"
-            )
-        mapped[key] = t
-        used.add(src)
-    ignored = sorted(k for k in raw if k not in used)
+    loaded, ignored = load_state_strict(
+        model, raw, file, "VPoser V02_05", prefix=OFFICIAL_PREFIX if official else "", optional=_optional,
+        ignore_unexpected=True,
+        note=f"VPoser(hidden={model.hidden}, latent={model.latent}); is this the right size (paper: hidden 512, latent 32)?",
+    )
     ignored += sorted(f"<top level>/{k}" for k in ckpt if k != "state_dict" and not (fmt == "project" and k == "config"))
-    return mapped, ignored, fmt
+    return loaded, ignored, fmt
 
 
-def load_vposer_checkpoint(path: str | Path, model: VPoser) -> CheckpointReport:
-    """Load a VPoser checkpoint (file, or ``V02_05`` folder) into ``model`` strictly; see
-    :func:`read_state_dict`. Logs and returns which file was chosen and what was ignored."""
-    file, why = resolve_checkpoint(path)
-    mapped, ignored, fmt = read_state_dict(file, model)
-    model.load_state_dict(mapped, strict=False)  # every required key is checked above
-    log.info("VPoser weights: %s (%s, %s); %d tensors loaded, ignored: %s", file, fmt, why, len(mapped), ignored or "nothing")
-    return CheckpointReport(file=file, format=fmt, chosen_because=why, loaded=sorted(mapped), ignored=ignored, config=model.config)
-
-
-def read_project_config(file: str | Path) -> dict:
+def _project_config(ckpt: object, file: Path) -> dict:
     """The ``config`` entry ({"hidden", "latent"}) of a project checkpoint (priors/weights/vposer.pt)."""
-    if Path(file).is_dir() or Path(file).suffix == ".ckpt":
-        raise ValueError(
-            f"{file} looks like the official VPoser release (a V02_05 folder or a .ckpt): load it with "
-            "size='paper'; size 'embedded' reads priors/weights/vposer.pt"
-        )
-    ckpt = torch_load_weights(file, "retrain with `python -m benchmark train vposer-slerp`")
     cfg = ckpt.get("config") if isinstance(ckpt, dict) else None
     if not isinstance(cfg, dict) or not {"hidden", "latent"} <= set(cfg):
         raise ValueError(f"{file}: field 'config' with 'hidden' and 'latent' is missing; retrain with priors.vposer.train.train_vposer")
     return {"hidden": int(cfg["hidden"]), "latent": int(cfg["latent"])}
+
+
+def load(path: str | Path, size: str = "embedded") -> tuple[VPoser, CheckpointReport]:
+    """The VPoser network of a checkpoint, strictly loaded, and what was read.
+
+    size "paper": the official V02_05 release (a ``V02_05`` folder, whose snapshot with the highest
+    epoch is taken, or a ``.ckpt`` file; a project-format file of the paper size loads too) into the
+    paper-size network. size "embedded": the project's file (``priors/weights/vposer.pt``, written
+    by :mod:`priors.vposer.train`), at the size its ``config`` says.
+    """
+    check_size("vposer-slerp", size)
+    if size == "embedded":
+        if Path(path).is_dir() or Path(path).suffix == ".ckpt":
+            raise ValueError(
+                f"{path} looks like the official VPoser release (a V02_05 folder or a .ckpt): load it with "
+                "size='paper'; size 'embedded' reads priors/weights/vposer.pt"
+            )
+        file, why = resolve_checkpoint(path)
+        ckpt = torch_load_weights(file, "retrain with `python -m benchmark train vposer-slerp`")
+        model = VPoser(**_project_config(ckpt, file))
+    else:
+        file, why = resolve_checkpoint(path)
+        ckpt = _torch_load(file)
+        model = VPoser(**PAPER_CONFIG)
+    loaded, ignored, fmt = _load_state(ckpt, file, model)
+    log.info("VPoser weights: %s (%s, %s); %d tensors loaded, ignored: %s", file, fmt, why, len(loaded), ignored or "nothing")
+    return model, CheckpointReport(file=file, format=fmt, chosen_because=why, loaded=loaded, ignored=ignored, config=model.config)
 
 
 V1_WHERE_TO_GET = (
@@ -183,20 +154,16 @@ V1_WHERE_TO_GET = (
 )
 
 
-# -- strict loading --------------------------------------------------------------------------
-def _is_optional(key: str) -> bool:
-    return key.endswith("num_batches_tracked")
+def _v1_hint(missing: list[str], unexpected: list[str]) -> str:
+    if any(k.startswith("encoder_net.") or k.startswith("vp_model.") for k in unexpected):
+        return " (this looks like VPoser V02_05: Xu et al. need VPoser v1.0, TR00_E096.pt)"
+    if any(k.startswith("module.") for k in unexpected):
+        return " (keys start with 'module.': is this the motion prior pretrained_priorD.pth?)"
+    return ""
 
 
-def torch_load_cpu(file: str | Path) -> object:
-    """``torch.load`` on CPU with ``weights_only=True`` (plain state dicts, also the legacy pre-1.6
-    serialisation); a file that pickles anything else is refused with
-    :class:`benchmark.safe_loading.UnsafeFileError`."""
-    return torch_load_weights(file, STATE_DICT_FIX)
-
-
-def load_vposer_v1_state(state: object, model: VPoserV1, file: str | Path = "<state dict>", prefix: str = "") -> list[str]:
-    """Copy a VPoser v1.0 state dict into ``model``, strictly; returns the loaded keys.
+def load_vposer_v1_state(state: object, model: VPoserV1, file: str | Path = "<state dict>", prefix: str = "") -> CheckpointReport:
+    """Copy a VPoser v1.0 state dict into ``model``, strictly (:func:`priors.checkpoints.load_state_strict`).
 
     ``state``: the official ``TR00_E096.pt`` content (plain dict of tensors) or ``{"state_dict": {...}}``.
     ``prefix``: a key prefix to strip (e.g. ``"vposer."`` inside the project's checkpoint). Errors
@@ -209,34 +176,13 @@ def load_vposer_v1_state(state: object, model: VPoserV1, file: str | Path = "<st
             f"{file}: not a VPoser v1.0 checkpoint: expected a state dict (TR00_E096.pt) with "
             f"'bodyprior_*' keys, found {type(state).__name__}"
         )
-    raw = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
-    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
-    missing = [k for k in expected if k not in raw and not _is_optional(k)]
-    unexpected = sorted(k for k in raw if k not in expected)
-    if missing or unexpected:
-        hint = ""
-        if any(k.startswith("encoder_net.") or k.startswith("vp_model.") for k in unexpected):
-            hint = " (this looks like VPoser V02_05: Xu et al. need VPoser v1.0, TR00_E096.pt)"
-        elif any(k.startswith("module.") for k in unexpected):
-            hint = " (keys start with 'module.': is this the motion prior pretrained_priorD.pth?)"
-        raise KeyError(
-            f"{file}: VPoser v1.0 state dict does not match VPoserV1(hidden={model.hidden}, latent={model.latent}): "
-            f"missing keys {[prefix + k for k in missing]}, unexpected keys {[prefix + k for k in unexpected]}{hint}. "
-            f"{V1_WHERE_TO_GET}"
-        )
-    bad = [
-        f"{prefix + k}: file {tuple(raw[k].shape) if torch.is_tensor(raw[k]) else type(raw[k]).__name__}, expected {shape}"
-        for k, shape in expected.items()
-        if k in raw and (not torch.is_tensor(raw[k]) or tuple(raw[k].shape) != shape)
-    ]
-    if bad:
-        raise ValueError(
-            f"{file}: VPoser v1.0 shape mismatch for VPoserV1(hidden={model.hidden}, latent={model.latent}) "
-            f"(paper: hidden 512, latent 32): {bad}"
-        )
-    mapped = {k: raw[k] for k in expected if k in raw}
-    model.load_state_dict(mapped, strict=False)  # all required keys checked above
-    return sorted(mapped)
+    state = {k: v for k, v in state.items() if k.startswith(prefix)}
+    loaded, _ = load_state_strict(
+        model, state, file, "VPoser v1.0", prefix=prefix, optional=_optional, hint=_v1_hint,
+        note=f"VPoserV1(hidden={model.hidden}, latent={model.latent}) (paper: hidden 512, latent 32). {V1_WHERE_TO_GET}",
+    )
+    return CheckpointReport(file=Path(str(file)), format="official-v1", loaded=loaded,
+                            config={"hidden": model.hidden, "latent": model.latent})
 
 
 def is_vposer_v1_state(state: object) -> bool:

@@ -1,0 +1,86 @@
+"""The test motions of a table: which motions (:func:`load_motions`: the synthetic test split, or
+``--data``'s motion files, shapes made fit for the body), which of them a profile runs
+(:func:`select_sequences`), and the seeds derived from a unit's or a sequence's coordinates
+(:func:`stable_seed`), shared by the protocols and ``data make-scans``."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections import defaultdict
+from pathlib import Path
+
+from benchmark.motion import Motion, shape_for_body
+
+log = logging.getLogger(__name__)
+
+
+def load_motions(data: str | None, min_duration: float, body=None) -> dict:
+    """Test motions by id: the synthetic test split by default, or a folder of motion files (each
+    checked by its loader: :mod:`benchmark.plausibility`)."""
+    files_by_id = {}
+    if data is None:
+        from benchmark.synthetic.splits import build_split
+
+        motions = build_split("test")
+        by_id = {m.source: m for m in motions}
+    elif data.startswith("scans="):
+        raise ValueError(f"--data {data}: captured scans are read by the completion protocol (table1) only")
+    else:
+        from benchmark.loaders.amass import load_amass
+
+        root = Path(data.split("=", 1)[-1])
+        files = sorted(root.rglob("*.npz")) if root.is_dir() else [root]
+        if not files:
+            raise FileNotFoundError(f"--data {data}: no .npz motion files under {root}")
+        import numpy as np
+
+        by_id = {}
+        for f in files:
+            try:
+                with np.load(f, allow_pickle=False) as npz:
+                    keys = set(npz.files)
+            except Exception as exc:  # not a zip, a pickle, truncated...
+                raise ValueError(f"--data {data}: {f} is not a readable .npz file ({type(exc).__name__}: {exc}); "
+                                 "remove it from the folder or re-export it (python -m benchmark data convert)") from None
+            try:
+                m = load_amass(f) if "mocap_framerate" in keys or "mocap_frame_rate" in keys else Motion.load(f)
+            except KeyError as exc:
+                text = exc.args[0] if exc.args and isinstance(exc.args[0], str) and " " in exc.args[0] else \
+                    f"{f}: no field {exc} (fields present: {sorted(keys)})"
+                raise ValueError(f"--data {data}: {text}; convert the file with "
+                                 "`python -m benchmark data convert FILE --out FILE.npz`") from None
+            key = str(f.relative_to(root) if root.is_dir() else f.name)
+            by_id[key], files_by_id[key] = m, str(f)
+    if body is not None:
+        by_id = {k: shape_for_body(m, body, files_by_id.get(k)) for k, m in by_id.items()}
+    short = [k for k, m in by_id.items() if m.duration + 1e-6 < min_duration]
+    if short:
+        log.warning("skipping %d motions shorter than the %.1f s window: %s", len(short), min_duration, short[:5])
+    return {k: m for k, m in by_id.items() if k not in short}
+
+
+def select_sequences(motions_by_id: dict, count) -> list[str]:
+    """A deterministic selection spread evenly over subjects (round robin over sorted ids)."""
+    ids = sorted(motions_by_id)
+    if count == "all" or count is None or int(count) >= len(ids):
+        return ids
+    groups = defaultdict(list)
+    for sid in ids:
+        groups[motions_by_id[sid].meta.get("subject", "")].append(sid)
+    # spread within each subject too: take evenly spaced sequences
+    n = int(count)
+    order = sorted(groups)
+    chosen = []
+    for i, s in enumerate(order):
+        g, q = groups[s], n // len(order) + (1 if i < n % len(order) else 0)
+        step = len(g) / max(q, 1)
+        chosen += [g[int(k * step)] for k in range(min(q, len(g)))]
+    return sorted(chosen)
+
+
+def stable_seed(*parts) -> int:
+    """A 32-bit seed from any parts (their ``str`` joined by ``|``, SHA-256): the same parts give the
+    same seed on every machine and in every process."""
+    h = hashlib.sha256("|".join(str(p) for p in parts).encode()).digest()
+    return int.from_bytes(h[:4], "little")
