@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import math
 import os
 import pickle
 import re
@@ -50,39 +49,21 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Sequence
 
+from benchmark.work_units import estimate_cost
+
 log = logging.getLogger(__name__)
 
 __all__ = ["ProcessBackend", "RayBackend", "UnitError", "WorkerDied", "code_fingerprint", "default_jobs",
-           "estimate_cost", "longest_first", "make_backend", "serial_backend", "BACKENDS"]
-
-_NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
+           "longest_first", "make_backend", "serial_backend", "BACKENDS"]
 
 
 # --------------------------------------------------------------------------------------------
 # Ordering
 # --------------------------------------------------------------------------------------------
 
-def estimate_cost(unit) -> float:
-    """A unit's relative cost for ordering (only its rank matters): the number of sequences times
-    the product of ``1 + |v|`` over the numbers in its cell (table1: points and fps; sls:
-    ``p10000`` reads as 10000). A heuristic: more observed points, frames, noise or gap cost more."""
-    cost = float(max(1, len(unit.sequence_ids)))
-    for value in unit.cell.values():
-        if isinstance(value, bool):
-            continue
-        if isinstance(value, (int, float)):
-            numbers = [float(value)]
-        else:
-            numbers = [float(m) for m in _NUMBER.findall(str(value))]
-        for v in numbers:
-            if math.isfinite(v):
-                cost *= 1.0 + abs(v)
-    return cost
-
-
 def longest_first(units: Sequence, execute=None) -> list:
     """``units`` sorted by decreasing cost (``execute.unit_cost(unit)`` when the executor has it,
-    else :func:`estimate_cost`); ties keep the plan order, so units of one cell stay together."""
+    else :func:`benchmark.work_units.estimate_cost`); ties keep the plan order, so units of one cell stay together."""
     cost_of = getattr(execute, "unit_cost", None) or estimate_cost
     costs = [float(cost_of(u)) for u in units]
     order = sorted(range(len(units)), key=lambda i: (-costs[i], i))

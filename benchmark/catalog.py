@@ -150,6 +150,7 @@ def table_rows():
 
 def prior_rows():
     from benchmark.registry import registry
+    from priors.base import PriorAdapter
 
     rows = []
     for name, entry in sorted(registry().items()):
@@ -157,7 +158,7 @@ def prior_rows():
         if cls is None:
             rows.append((name, f"LOAD ERROR ({entry.origin}, {entry.target}): {entry.error}"))
         else:
-            paper = getattr(cls, "paper", "")
+            paper = cls.paper if isinstance(cls, type) and issubclass(cls, PriorAdapter) else "(not a priors.base.PriorAdapter)"
             rows.append((name, f"{paper}  [{entry.origin}: {entry.target}]"))
     return rows
 

@@ -13,17 +13,18 @@ def _cmd_list(args) -> int:
     from benchmark.body import BODY_KINDS
     from benchmark.catalog import dataset_rows, prior_rows, profile_rows, protocol_rows, table_rows
 
-    sections = [
-        ("tables", table_rows()),
-        ("priors", prior_rows()),
-        ("protocols", protocol_rows()),
-        ("datasets", dataset_rows()),
-        ("body models", [(k, v) for k, v in BODY_KINDS.items()]),
-        ("profiles", profile_rows()),
+    sections = [  # each built only when listed: `list tables` imports no prior
+        ("tables", table_rows),
+        ("priors", prior_rows),
+        ("protocols", protocol_rows),
+        ("datasets", dataset_rows),
+        ("body models", lambda: list(BODY_KINDS.items())),
+        ("profiles", profile_rows),
     ]
-    for title, rows in sections:
+    for title, make_rows in sections:
         if args.what and args.what != title.split()[0]:
             continue
+        rows = make_rows()
         print(f"{title}:")
         if not rows:
             print("  (none)")
@@ -57,11 +58,27 @@ def _cmd_data_build(args) -> int:
     return 0
 
 
+def _cmd_data_make_scans(args) -> int:
+    from benchmark.synthetic.scan_set import make_scan_set
+
+    table_spec = None
+    if args.table_capture is not None:
+        from benchmark.catalog import load_table_spec
+
+        table_spec = load_table_spec("table1")
+    written = make_scan_set(args.out, sequences=args.ids if args.ids is not None else args.sequences, fps=args.fps,
+                            points=args.points, noise_mm=args.noise_mm, holes=args.holes, duration=args.duration,
+                            seed=args.seed, up=args.up, units=args.units, overwrite=args.force,
+                            table_capture=args.table_capture, table_spec=table_spec)
+    print(f"wrote {len(written)} scan sequences to {args.out}: {', '.join(p.name for p in written)}")
+    return 0
+
+
 def _cmd_perf(args) -> int:
-    from benchmark.cli_run import _device
+    from benchmark.cli_run import resolve_device
     from benchmark.perf import run_perf
 
-    run_perf(device=_device(args.device), quick=not args.full, out=args.out, parts=args.only)
+    run_perf(device=resolve_device(args.device), quick=not args.full, out=args.out, parts=args.only)
     return 0
 
 
@@ -98,9 +115,26 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=at.seed, default=None, help="override the split's seed")
     b.add_argument("--rebuild", action="store_true")
     b.set_defaults(func=_cmd_data_build)
-    from benchmark.synthetic.scan_set import add_make_scans_command
-
-    add_make_scans_command(dsub)
+    m = dsub.add_parser("make-scans", help="write captured-like scan folders (PLY + timestamps) from the synthetic test split",
+                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    m.add_argument("--out", required=True, help="output folder, one sub-folder per sequence")
+    m.add_argument("--sequences", type=at.positive_int, default=4, help="how many test sequences (the profiles' selection)")
+    m.add_argument("--ids", nargs="+", default=None, help="explicit test sequence ids instead of --sequences")
+    m.add_argument("--fps", type=at.fps, default=60.0, help="capture rate")
+    m.add_argument("--points", type=at.points, default=10000, help="points per frame (after the holes)")
+    m.add_argument("--noise-mm", type=at.Number(float, 0.0, 1000.0, unit="mm"), default=3.0, help="Gaussian noise per axis, mm")
+    m.add_argument("--holes", type=at.fraction, default=0.1, help="fraction of each frame's surface cut away")
+    m.add_argument("--duration", type=at.positive_float, default=4.0,
+                   help="seconds per sequence (at most the sequences' length, 4.4 s)")
+    m.add_argument("--seed", type=at.seed, default=0)
+    m.add_argument("--up", choices=["y", "z"], default="y", help="up axis to write")
+    m.add_argument("--units", choices=["m", "cm", "mm"], default="m", help="units to write")
+    m.add_argument("--table-capture", type=at.seed, default=None, metavar="SEED",
+                   help="write the capture `run table1 --seed SEED` synthesises (its rate, points and seeds; "
+                        "no noise, no holes): the scan path's check against the synthetic run")
+    m.add_argument("--force", action="store_true",
+                   help="replace the output of an earlier make-scans in --out (a folder holding anything else is refused)")
+    m.set_defaults(func=_cmd_data_make_scans)
 
     p = sub.add_parser("perf", help="speed of the hot paths (Chamfer, point-to-surface, evaluation, skinning, fit "
                                     "steps) against the baselines a user would pick, measured side by side",

@@ -7,7 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
-from benchmark.registry import make_adapter  # noqa: F401  (re-exported for old imports)
+from benchmark.registry import make_adapter
 
 log = logging.getLogger("benchmark")
 
@@ -19,7 +19,7 @@ def default_priors(spec: dict) -> list[str]:
     return list(spec.get("default_priors") or DEFAULT_PRIORS)
 
 
-def _device(name: str | None) -> str:
+def resolve_device(name: str | None) -> str:
     """The device to run on: ``None`` picks cuda when available; otherwise ``cpu``, ``cuda`` or
     ``cuda:N``, checked here so that a wrong name fails before any work."""
     import torch
@@ -102,7 +102,7 @@ def _cmd_run(args) -> int:
 
     # everything a user can get wrong is checked here, before the body, data or any prior loads
     spec = load_table_spec(args.table)
-    device = _device(args.device)
+    device = resolve_device(args.device)
     profile_name = args.profile or ("full" if device.startswith("cuda") else "quick")
     profile = get_profile(profile_name, table=spec["name"])
     out = check_out_dir(args.out)  # cheap, and the costliest mistake to find late: first
@@ -199,9 +199,10 @@ def _cmd_describe(args) -> int:
     elif args.name is None:
         raise ValueError("describe needs a prior NAME (python -m benchmark list priors) or --body KIND")
     cls = get_prior_class(args.name)
-    paper_network = getattr(cls, "paper_network", None)
-    if args.size == "paper" and args.weights is None and paper_network is not None:
-        net = paper_network()
+    from priors.base import PaperNetwork
+
+    if args.size == "paper" and args.weights is None and isinstance(cls, type) and issubclass(cls, PaperNetwork):
+        net = cls.paper_network()
         print(f"{args.name} (paper size, random weights: architecture only, no checkpoint loaded)")
         print(net)
         _print_counts(net)
@@ -229,9 +230,13 @@ def _cmd_train(args) -> int:
     from benchmark.outdir import check_out_dir
 
     cls = get_prior_class(args.name)
-    if not hasattr(cls, "train_embedded"):
-        raise ValueError(f"prior {args.name!r} has no training recipe (no train_embedded classmethod)")
+    from priors.base import Trainable
+
+    if not (isinstance(cls, type) and issubclass(cls, Trainable)):
+        raise ValueError(f"prior {args.name!r} has no training recipe (it is not a priors.base.Trainable: "
+                         "no train_embedded classmethod)")
     out = Path(args.out) if args.out is not None else None
+    from benchmark.synthetic.train_data import SyntheticTrainingData
     from priors.training import WEIGHTS_DIR, training_session
 
     # the weights folder first: a wrong --out fails in a second, not after hours of training
@@ -245,7 +250,9 @@ def _cmd_train(args) -> int:
                                 f"without --resume (it checkpoints every {args.checkpoint_every} steps)")
     with training_session(state_dir, resume=args.resume, checkpoint_every=args.checkpoint_every,
                           val_every=args.val_every):
-        record = cls.train_embedded(out_dir=out, steps=args.steps, seed=args.seed, overwrite=args.force)
+        # the training data: the synthetic splits, handed to the recipe (priors never build data)
+        record = cls.train_embedded(out_dir=out, steps=args.steps, seed=args.seed, overwrite=args.force,
+                                    dataset=SyntheticTrainingData())
     print(record)
     return 0
 

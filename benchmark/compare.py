@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 from typing import Mapping, Sequence, TextIO
 
-from benchmark.results import TABLE_FORMAT_VERSION, canonical_json
+from benchmark.work_units import TABLE_FORMAT_VERSION, canonical_json
 from benchmark.writers import cell_label
 
 # unit suffix -> default tolerance, in that unit

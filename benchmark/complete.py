@@ -65,7 +65,7 @@ def check_complete_args(args) -> tuple[Path, list[str]]:
 def _observation_from_motion(motion, body, spec: dict, window: float, points, fps: float, seed: int):
     from benchmark.degrade import degrade
     from benchmark.observations import make_scans
-    from benchmark.protocols.completion_unit import stable_seed
+    from benchmark.work_units import stable_seed
 
     d = spec["data"]
     scans, _ = make_scans(body, [motion], fps=float(d["capture_fps"]), num_points=int(d["points_per_frame"]),
@@ -79,10 +79,9 @@ def _load_input(path: Path, args, body, spec: dict):
     """(observation, window start in the input's time, window, truth Motion or None, description)."""
     from benchmark.loaders.convert import load_motion
     from benchmark.loaders.scans import ScanSequence
-    from benchmark.motion import Motion
-    from benchmark.protocols.completion_unit import stable_seed
+    from benchmark.motion import Motion, shape_for_body
     from benchmark.protocols.scan_completion import ScanCompletionData
-    from benchmark.protocols.table_run import _shape_for_body
+    from benchmark.work_units import stable_seed
 
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such scan folder or motion file")
@@ -100,13 +99,13 @@ def _load_input(path: Path, args, body, spec: dict):
                                       stable_seed("degrade", args.seed, args.points, args.fps, path.name))
         t_start = float(obs.timestamps[0, 0])
         truth_file = path / "ground_truth" / "motion.npz"
-        truth = _shape_for_body(Motion.load(truth_file), body, str(truth_file)) if truth_file.is_file() else None
+        truth = shape_for_body(Motion.load(truth_file), body, str(truth_file)) if truth_file.is_file() else None
         what = (f"scan folder {path}: {len(seq.frames)} frames at {seq.capture_fps:.4g} fps; observed "
                 f"{obs.num_frames} frames (largest offset from the nominal instants {1000 * offsets[0]:.1f} ms)")
         return obs, t_start, window, truth, what
     if args.up != "y" or args.units != "m":
         raise ValueError("--up / --units apply to scan folders; motion files are converted by their loaders")
-    motion = _shape_for_body(load_motion(path), body, str(path))
+    motion = shape_for_body(load_motion(path), body, str(path))
     if not 0 <= args.start < motion.duration:
         raise ValueError(f"{path}: --start {args.start} s lies outside the motion ({motion.duration:.3f} s)")
     if args.start:

@@ -14,8 +14,9 @@ import logging
 import roma
 import torch
 
-from benchmark.observations import PointCloudSequence, sample_surface
+from benchmark.observations import PointCloudSequence
 from benchmark.skeleton import NUM_JOINTS
+from benchmark.surface_sampling import sample_surface
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +69,9 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
     from benchmark.body import get_body
     from benchmark.registry import make_adapter
     from benchmark.degrade import degrade
-    from benchmark.protocols.completion import body_parameters, fit, init_state, observation_batch
-    from priors.base import PriorAdapter
+    from benchmark.protocols.completion import fit, observation_batch
+    from benchmark.protocols.fit_state import body_parameters, init_state
+    from priors.base import MotionEncoder, PriorAdapter, interfaces_of
 
     rep = _Report()
     ctx = {}
@@ -97,7 +99,10 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
             raise ValueError("fixed windows need frames and fps")
         if not a.name or a.name == "prior":
             raise ValueError("set a registry name")
-        return f"translation={a.encodes_translation} root={a.encodes_root_orientation} heading_normalised={a.heading_normalised}"
+        if a.has_encoder and not isinstance(a, MotionEncoder):
+            raise ValueError("has_encoder is True but the adapter is not a priors.base.MotionEncoder (encode_motion)")
+        return (f"translation={a.encodes_translation} root={a.encodes_root_orientation} heading_normalised={a.heading_normalised}"
+                f" interfaces: {', '.join(interfaces_of(a)) or 'none'}")
 
     rep.check("declaration", declaration)
 
@@ -138,7 +143,7 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
             # the data term alone: a prior term reaches the latents even when the decoder ignores them
             data = chamfer_loss(verts.flatten(0, 1), batch.points.flatten(0, 1), b_lengths=batch.lengths.flatten()).sum()
             data.backward()
-            constant = set(getattr(a, "constant_latents", ()))  # e.g. the window length a decoder reads
+            constant = set(a.constant_latents)  # e.g. the window length a decoder reads
             dead = [k for k, v in st.latents.items() if k not in constant
                     and (v.grad is None or not torch.isfinite(v.grad).all() or v.grad.abs().sum() == 0)]
             if dead:
@@ -153,7 +158,7 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
 
         def decode_depends_on_latents():
             st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu")
-            constant = set(getattr(a, "constant_latents", ()))
+            constant = set(a.constant_latents)
             with torch.no_grad():
                 rot0, tr0 = body_parameters(st, batch.output_timestamps)
                 g = torch.Generator().manual_seed(1)

@@ -77,18 +77,19 @@ def sidecar_path(path: str | Path) -> Path:
 
 
 def get_spec(adapter_or_spec):
-    """The ExportSpec of an adapter (``export_decoder()``), or the spec itself; checked."""
-    from priors.base import ExportSpec
+    """The ExportSpec of an adapter (an :class:`~priors.base.ExportableDecoder`: ``export_decoder()``),
+    or the spec itself; checked."""
+    from priors.base import ExportableDecoder, ExportSpec, PriorAdapter
 
     if isinstance(adapter_or_spec, ExportSpec):
         spec = adapter_or_spec
     else:
-        name = getattr(adapter_or_spec, "name", type(adapter_or_spec).__name__)
-        export = getattr(adapter_or_spec, "export_decoder", None)
-        if export is None:
-            raise NotExportableError(f"prior {name!r} has no export_decoder(): it does not export its decoder to ONNX")
+        name = adapter_or_spec.name if isinstance(adapter_or_spec, PriorAdapter) else type(adapter_or_spec).__name__
+        if not isinstance(adapter_or_spec, ExportableDecoder):
+            raise NotExportableError(f"prior {name!r} has no decoder to export to ONNX (it is not an ExportableDecoder: "
+                                     "no export_decoder())")
         try:
-            spec = export()
+            spec = adapter_or_spec.export_decoder()
         except NotImplementedError as exc:
             raise NotExportableError(str(exc) or f"prior {name!r} does not export its decoder") from exc
         if not isinstance(spec, ExportSpec):
@@ -360,7 +361,7 @@ def export_onnx(
     lo, hi = supported_opsets()
     if not lo <= int(opset) <= hi:
         raise ValueError(f"--opset {opset}: out of range; this torch exports opsets {lo}..{hi}")
-    path = check_export_target(path, overwrite, getattr(adapter, "weights_path", None))
+    path = check_export_target(path, overwrite, adapter.weights_path)
     record_path = sidecar_path(path)
     spec = get_spec(adapter)
 
@@ -391,13 +392,13 @@ def export_onnx(
         if tmp.exists():
             tmp.unlink()
 
-    weights = getattr(adapter, "weights_path", None)
+    weights = adapter.weights_path
     weights_file = Path(weights) if weights else None
     record = {
         "file": str(path),
-        "prior": getattr(adapter, "name", None),
-        "size": getattr(adapter, "size", None),
-        "paper": getattr(adapter, "paper", None),
+        "prior": adapter.name,
+        "size": adapter.size,
+        "paper": adapter.paper,
         "weights": str(weights_file) if weights_file else None,
         "weights_sha256": sha256_file(weights_file) if weights_file is not None and weights_file.is_file() else None,
         "decoder_parameters": sum(p.numel() for p in module.parameters()),

@@ -105,11 +105,11 @@ def add_fit_check_command(sub) -> None:
                         "default: the spec's rule")
 
     def run(args) -> int:
-        from benchmark.cli_run import _device
+        from benchmark.cli_run import resolve_device
 
         fps = int(args.fps) if float(args.fps).is_integer() else args.fps
         return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,
-                             device=_device(args.device), out=args.out, jobs=args.jobs,
+                             device=resolve_device(args.device), out=args.out, jobs=args.jobs,
                              start_search=args.start_search)
 
     p.set_defaults(func=run)

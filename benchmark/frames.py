@@ -18,6 +18,11 @@ from __future__ import annotations
 import torch
 
 
+# Fixed z-up -> y-up rotation (AMASS and other z-up worlds into the project's y-up world): -90 degrees
+# about x, (x, y, z) -> (x, z, -y).
+Z_UP_TO_Y_UP = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+
+
 def yaw_matrix(yaw: torch.Tensor) -> torch.Tensor:
     """(...,) angles about +y (radians) -> (..., 3, 3) rotations R_y: x' = cos x + sin z,
     z' = -sin x + cos z, so that R_y(a) e_z = (sin a, 0, cos a)."""

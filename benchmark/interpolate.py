@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from benchmark.rotations import slerp_matrices
+from benchmark.rotations import axis_angle_to_matrix, slerp_matrices
 
 
 def bracket(src_t: torch.Tensor, dst_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -50,3 +50,28 @@ def slerp_frames(R: torch.Tensor, src_t: torch.Tensor, dst_t: torch.Tensor) -> t
     i0, i1, w = bracket(src_t, dst_t)
     w = w.to(R.dtype).reshape(*w.shape, *([1] * (R.dim() - 4)))
     return slerp_matrices(_gather_frames(R, i0), _gather_frames(R, i1), w)
+
+
+def resample_intervals(motion, intervals, anchors: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each [start, end] of ``intervals`` (K, 2) of ``motion`` (a :class:`~benchmark.motion.Motion`)
+    resampled to ``anchors`` instants uniformly in time (the one-cycle windows of
+    :mod:`benchmark.synthetic.cycles`, the structured latent space's anchors).
+
+    Returns local rotations (K, anchors, 22, 3, 3), translation (K, anchors, 3) (float32, SLERP /
+    LERP between the motion's frames, clamped at its ends) and the anchor times relative to each
+    interval's start (K, anchors) float64, 0 .. end - start.
+    """
+    iv = torch.as_tensor(intervals, dtype=torch.float64).reshape(-1, 2)
+    K = iv.shape[0]
+    if K == 0:
+        return torch.zeros(0, anchors, 22, 3, 3), torch.zeros(0, anchors, 3), torch.zeros(0, anchors, dtype=torch.float64)
+    if anchors < 2:
+        raise ValueError(f"anchors must be >= 2, got {anchors}")
+    u = torch.linspace(0.0, 1.0, anchors, dtype=torch.float64)
+    rel = (iv[:, 1:] - iv[:, :1]) * u  # (K, n)
+    dst = (iv[:, :1] + rel).reshape(1, -1)
+    src = motion.timestamps.to(torch.float64)[None]
+    R = axis_angle_to_matrix(motion.poses.to(torch.float64))[None]
+    rot = slerp_frames(R, src, dst)[0].reshape(K, anchors, 22, 3, 3)
+    trans = lerp_frames(motion.trans.to(torch.float64)[None], src, dst)[0].reshape(K, anchors, 3)
+    return rot.float(), trans.float(), rel

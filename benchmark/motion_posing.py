@@ -20,7 +20,7 @@ DEFAULT_CHUNK_FRAMES = 256
 _TIME_TOLERANCE = 1e-6
 
 
-def _body_float(body: torch.nn.Module) -> tuple[torch.dtype, torch.device]:
+def body_float(body: torch.nn.Module) -> tuple[torch.dtype, torch.device]:
     """The floating dtype and device of a body's buffers (float32 on CPU if it has none)."""
     for buf in body.buffers():
         if buf.is_floating_point():
@@ -73,7 +73,7 @@ def capture_timestamps(
     return timestamps, frame_mask
 
 
-def _stack_shapes(body, motions: Sequence, shapes: torch.Tensor | None, dtype, device) -> torch.Tensor:
+def stack_shapes(body, motions: Sequence, shapes: torch.Tensor | None, dtype, device) -> torch.Tensor:
     B = len(motions)
     if shapes is not None:
         shapes = torch.as_tensor(shapes)
@@ -103,7 +103,7 @@ def _stack_shapes(body, motions: Sequence, shapes: torch.Tensor | None, dtype, d
     return torch.stack(rows)
 
 
-def _resample_stack(motions: Sequence, timestamps: torch.Tensor, frame_mask: torch.Tensor):
+def resample_stack(motions: Sequence, timestamps: torch.Tensor, frame_mask: torch.Tensor):
     """Resample each motion at its row of timestamps (padded frames clamped into its span).
 
     Returns poses (B, T, 22, 3) axis-angle and trans (B, T, 3).

@@ -32,16 +32,16 @@ from typing import Sequence
 import roma
 import torch
 
-from benchmark.motion_posing import (  # re-exported: motion posing lives in benchmark.motion_posing
+from benchmark.motion_posing import (
     DEFAULT_CHUNK_FRAMES,
-    _body_float,
-    _resample_stack,
-    _stack_shapes,
+    body_float,
     capture_timestamps,
     pose_body,
+    resample_stack,
+    stack_shapes,
 )
 from benchmark.skeleton import LANDMARK_NAMES, NUM_JOINTS, NUM_LANDMARKS
-from benchmark.surface_sampling import (  # re-exported: surface sampling lives in benchmark.surface_sampling
+from benchmark.surface_sampling import (
     farthest_point_indices,
     sample_surface,
 )
@@ -290,7 +290,7 @@ def _pose_motions(body, motions, timestamps, shapes, frame_mask, chunk_frames):
     B = len(motions)
     if B == 0:
         raise ValueError("no motions given")
-    dtype, device = _body_float(body)
+    dtype, device = body_float(body)
     timestamps = torch.as_tensor(timestamps, dtype=torch.float64).cpu()
     if timestamps.dim() == 1:
         timestamps = timestamps.expand(B, -1)
@@ -301,8 +301,8 @@ def _pose_motions(body, motions, timestamps, shapes, frame_mask, chunk_frames):
     frame_mask = torch.as_tensor(frame_mask, dtype=torch.bool).cpu()
     if frame_mask.shape != timestamps.shape:
         raise ValueError(f"frame_mask must match timestamps {tuple(timestamps.shape)}, got {tuple(frame_mask.shape)}")
-    shapes = _stack_shapes(body, motions, shapes, dtype, device)
-    poses, trans = _resample_stack(motions, timestamps, frame_mask)
+    shapes = stack_shapes(body, motions, shapes, dtype, device)
+    poses, trans = resample_stack(motions, timestamps, frame_mask)
     poses = poses.to(device=device, dtype=dtype)
     trans = trans.to(device=device, dtype=dtype)
     vertices, joints = pose_body(body, roma.rotvec_to_rotmat(poses), trans, shapes, chunk_frames)
@@ -399,7 +399,7 @@ def virtual_marker_indices(body, count: int = DEFAULT_NUM_MARKERS, shape: torch.
     """(count,) long: the denoise table's virtual markers, a farthest-point subset of the mesh
     vertices in the T-pose (zero rotations, zero translation) of ``shape`` (default: the body's
     default shape). Deterministic for a given body."""
-    dtype, device = _body_float(body)
+    dtype, device = body_float(body)
     shape = body.default_shape(1) if shape is None else torch.as_tensor(shape).reshape(1, -1)
     rot = torch.eye(3, dtype=dtype, device=device).expand(1, 1, NUM_JOINTS, 3, 3)
     with torch.no_grad():
@@ -445,7 +445,7 @@ def make_noisy_joints(
         timestamps = torch.stack([torch.cat([r, r[-1:].expand(T - r.numel())]) for r in rows])
         frame_mask = torch.arange(T)[None, :] < torch.tensor([r.numel() for r in rows])[:, None]
     gt, clean, trans = _pose_motions(body, motions, timestamps, shapes, frame_mask, chunk_frames)
-    dtype, device = _body_float(body)
+    dtype, device = body_float(body)
     if marker_indices is None:
         marker_indices = virtual_marker_indices(body)
     marker_indices = torch.as_tensor(marker_indices, dtype=torch.long, device=device)

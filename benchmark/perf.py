@@ -116,13 +116,13 @@ def chamfer_compare(frames: int = 4, points=(100, 1000, 10000), vertices=(3000, 
 
     from benchmark.metrics.chamfer import chamfer_distance, chamfer_loss, pykdtree_class
     from benchmark.metrics.static_chamfer import StaticChamfer
-    from benchmark.metrics.perf import _synthetic_pair
+    from benchmark.metrics.perf import synthetic_pair
 
     kd = pykdtree_class()
     rows = []
     for n_vertices in vertices:
         for n_points in points:
-            a, b = _synthetic_pair(frames, n_points, n_vertices, torch.device("cpu"), seed)
+            a, b = synthetic_pair(frames, n_points, n_vertices, torch.device("cpu"), seed)
             static = StaticChamfer(b)
             # Each timed call sees the vertices moved, as an optimiser step moves them (a 5 mm shift
             # and 2 mm per vertex from the base): the previous call's neighbours, which start each
@@ -175,7 +175,7 @@ def _posed_mesh(body, seed: int = 0):
     pose (the ground truth), as an evaluation sees them."""
     import roma
 
-    from benchmark.observations import sample_surface
+    from benchmark.surface_sampling import sample_surface
 
     g = torch.Generator().manual_seed(seed)
     shape = body.default_shape(1)
@@ -261,7 +261,8 @@ def evaluation_compare(frames: int = 8, repeats: int = 2) -> dict:
     from types import SimpleNamespace
 
     from benchmark.body.anny_body import load_anny_body
-    from benchmark.protocols.completion_unit import UnitData, evaluate, evaluate_reference
+    from benchmark.protocols.completion_unit import evaluate, evaluate_reference
+    from benchmark.protocols.unit_data import UnitData
 
     body = load_anny_body("cpu")
     outs, gts, scans = zip(*(_posed_mesh(body, seed=s) for s in range(max(1, frames // 2))))
@@ -292,8 +293,9 @@ def adam_steps_table1(steps: int = 4, prior: str = "no-prior") -> list[dict]:
     from benchmark.degrade import degrade
     from benchmark.protocols import completion_unit as cu
     from benchmark.protocols.completion import fit, observation_batch
-    from benchmark.protocols.table_run import load_motions, select_sequences
     from benchmark.registry import make_adapter
+    from benchmark.table_data import load_motions
+    from benchmark.work_units import select_sequences, stable_seed
 
     spec = load_table_spec("table1")
     profile = get_profile("quick", table="table1")
@@ -306,7 +308,7 @@ def adam_steps_table1(steps: int = 4, prior: str = "no-prior") -> list[dict]:
     rows = []
     for points in spec["grid"]["points"]:
         for fps in spec["grid"]["fps"]:
-            obs = degrade(data.scans, int(points), float(fps), seed=cu.stable_seed("perf", points, fps),
+            obs = degrade(data.scans, int(points), float(fps), seed=stable_seed("perf", points, fps),
                           capture_fps=float(spec["data"]["capture_fps"]))
             batch = observation_batch(obs, float(spec["data"]["window_s"]), data.out_t, "cpu")
             stamps = []
@@ -329,10 +331,10 @@ def cuda_compare(frames: int = 16, n_points: int = 10000, n_vertices: int = 1371
     if not torch.cuda.is_available():
         return None
     from benchmark.metrics.chamfer import chamfer_loss
-    from benchmark.metrics.perf import _synthetic_pair
+    from benchmark.metrics.perf import synthetic_pair
 
     dev = torch.device("cuda")
-    a, b = _synthetic_pair(frames, n_points, n_vertices, dev, 0)
+    a, b = synthetic_pair(frames, n_points, n_vertices, dev, 0)
 
     def tiled():
         a.grad = None

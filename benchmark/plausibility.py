@@ -7,7 +7,7 @@ millisecond timestamps; 29,506,887 mm on translations x 1e6). The checks here re
 error that names the file, the field and the fix, and warn (``logging``, then go on) where data is
 only unusual. Callers: :meth:`benchmark.motion.Motion.load`, :func:`benchmark.loaders.amass.load_amass`,
 :func:`benchmark.loaders.bvh.load_bvh`, :mod:`benchmark.loaders.scans` (every frame, before any
-work unit starts) and :func:`benchmark.protocols.table_run._shape_for_body` (the shape against the
+work unit starts) and :func:`benchmark.motion.shape_for_body` (the shape against the
 body, for ``run --data``, ``data convert --body`` and ``complete``).
 
 Thresholds (module constants) and why:

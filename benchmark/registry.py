@@ -14,7 +14,6 @@ import importlib
 import logging
 import os
 import pickle
-import sys
 import zipfile
 from pathlib import Path
 from dataclasses import dataclass, field
@@ -125,16 +124,10 @@ def _torch_load_file(exc: BaseException) -> str | None:
     return found
 
 
-def _embedded_weights_guess(cls) -> str | None:
-    module = sys.modules.get(getattr(cls, "__module__", ""), None)
-    path = getattr(module, "DEFAULT_WEIGHTS", None)
-    return str(path) if path else None
-
-
 def weights_files(adapter) -> list[Path]:
     """The weights files an adapter read (``adapter.weights_path``: one path or several joined by
     commas), those that exist."""
-    raw = getattr(adapter, "weights_path", None)
+    raw = adapter.weights_path
     if not raw:
         return []
     parts = raw if isinstance(raw, (list, tuple)) else str(raw).split(",")
@@ -145,7 +138,7 @@ def weights_content_sha256(adapter) -> str | None:
     """sha256 over the contents of :func:`weights_files` (None when the adapter reads none). A
     folder given as weights is hashed file by file (sorted)."""
     files = weights_files(adapter)
-    raw = getattr(adapter, "weights_path", None)
+    raw = adapter.weights_path
     if not files and raw and not isinstance(raw, (list, tuple)) and Path(str(raw)).is_dir():
         files = sorted(p for p in Path(str(raw)).rglob("*") if p.is_file())
     if not files:

@@ -7,7 +7,7 @@ crash or a preempted node loses one unit, not the table.
 Resume policies:
 
 - ``"only-missing"`` (default): a unit whose file exists with the same spec hash, is a valid result
-  and matches its own ``checksum`` (:func:`benchmark.results.unit_checksum`, written with it) is done
+  and matches its own ``checksum`` (:func:`benchmark.work_units.unit_checksum`, written with it) is done
   and reused. A file with another spec hash (the rules, profile sizes, the prior's weights -- by
   content hash --, the sequences, the motion data they hold -- by content hash --, or the seed
   changed), an invalid one, or one whose contents no longer match its checksum (edited by hand,
@@ -39,19 +39,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
-from benchmark.results import (
+from benchmark.backends import BACKENDS, Backend
+from benchmark.unit_arrays import ARRAYS_KEY, arrays_path, write_arrays
+from benchmark.work_units import (
     WorkUnit,
     atomic_write_json,
     checksum_problem,
-    plan_units,
     unit_path,
     validate_unit_result,
     with_checksum,
 )
-from benchmark.backends import BACKENDS, Backend, serial_backend  # noqa: F401  (re-exported; backends never imports this module)
-from benchmark.unit_arrays import ARRAYS_KEY, arrays_path, write_arrays
 
-__all__ = ["BACKENDS", "RESUME_POLICIES", "RunReport", "WorkUnit", "plan_units", "progress_enabled", "run_units"]
+__all__ = ["RESUME_POLICIES", "RunReport", "progress_enabled", "run_units"]
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +161,7 @@ def run_units(
 ) -> RunReport:
     """Run ``units`` with ``execute``, storing each result as ``<out_dir>/units/<unit_id>.json``.
 
-    execute: ``execute(unit) -> unit-result dict`` (see :mod:`benchmark.results`); its result is
+    execute: ``execute(unit) -> unit-result dict`` (see :mod:`benchmark.work_units`); its result is
         validated against the unit (id, spec hash, sequences, finite sums) before it is stored.
     resume: ``"only-missing"`` or ``"never"`` (see the module docstring).
     backend: a name in :data:`BACKENDS`, or a backend callable (``benchmark.backends.make_backend``).

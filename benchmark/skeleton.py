@@ -23,3 +23,32 @@ MIRROR = tuple(
     JOINT_INDEX[n.replace("left_", "@").replace("right_", "left_").replace("@", "right_")]
     for n in JOINT_NAMES
 )
+
+# An SMPL-like neutral rest skeleton (metres; y up, facing +z, left at +x; pelvis at the origin),
+# rounded values of the typical SMPL neutral T-pose joint layout. Used only when the embedded Anny
+# body cannot be built, as the fixed skeleton of a training loss (priors.training.fixed_rest_skeleton),
+# and by priors whose paper size assumes an SMPL skeleton; it is not a body model.
+SMPL_LIKE_REST_JOINTS = (
+    (0.000, 0.000, 0.000),  # pelvis
+    (0.070, -0.090, -0.005),  # left_hip
+    (-0.068, -0.090, -0.006),  # right_hip
+    (0.000, 0.110, -0.025),  # spine1
+    (0.105, -0.475, 0.010),  # left_knee
+    (-0.105, -0.475, 0.010),  # right_knee
+    (0.000, 0.245, -0.020),  # spine2
+    (0.090, -0.880, -0.045),  # left_ankle
+    (-0.090, -0.880, -0.045),  # right_ankle
+    (0.000, 0.300, 0.005),  # spine3
+    (0.115, -0.940, 0.075),  # left_foot
+    (-0.115, -0.940, 0.075),  # right_foot
+    (0.000, 0.510, -0.035),  # neck
+    (0.075, 0.420, -0.020),  # left_collar
+    (-0.075, 0.420, -0.020),  # right_collar
+    (0.000, 0.580, 0.015),  # head
+    (0.170, 0.450, -0.030),  # left_shoulder
+    (-0.170, 0.450, -0.030),  # right_shoulder
+    (0.425, 0.440, -0.050),  # left_elbow
+    (-0.425, 0.440, -0.050),  # right_elbow
+    (0.680, 0.445, -0.050),  # left_wrist
+    (-0.680, 0.445, -0.050),  # right_wrist
+)

@@ -1,13 +1,10 @@
-"""The test motions of a table: which motions (:func:`load_motions`: the synthetic test split, or
-``--data``'s motion files, shapes made fit for the body), which of them a profile runs
-(:func:`select_sequences`), and the seeds derived from a unit's or a sequence's coordinates
-(:func:`stable_seed`), shared by the protocols and ``data make-scans``."""
+"""The test motions of a table (:func:`load_motions`): the synthetic test split, or ``--data``'s
+motion files, shapes made fit for the body; shared by the protocols, the runner and the commands.
+Which of them a profile runs: :func:`benchmark.work_units.select_sequences`."""
 
 from __future__ import annotations
 
-import hashlib
 import logging
-from collections import defaultdict
 from pathlib import Path
 
 from benchmark.motion import Motion, shape_for_body
@@ -58,29 +55,3 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
     if short:
         log.warning("skipping %d motions shorter than the %.1f s window: %s", len(short), min_duration, short[:5])
     return {k: m for k, m in by_id.items() if k not in short}
-
-
-def select_sequences(motions_by_id: dict, count) -> list[str]:
-    """A deterministic selection spread evenly over subjects (round robin over sorted ids)."""
-    ids = sorted(motions_by_id)
-    if count == "all" or count is None or int(count) >= len(ids):
-        return ids
-    groups = defaultdict(list)
-    for sid in ids:
-        groups[motions_by_id[sid].meta.get("subject", "")].append(sid)
-    # spread within each subject too: take evenly spaced sequences
-    n = int(count)
-    order = sorted(groups)
-    chosen = []
-    for i, s in enumerate(order):
-        g, q = groups[s], n // len(order) + (1 if i < n % len(order) else 0)
-        step = len(g) / max(q, 1)
-        chosen += [g[int(k * step)] for k in range(min(q, len(g)))]
-    return sorted(chosen)
-
-
-def stable_seed(*parts) -> int:
-    """A 32-bit seed from any parts (their ``str`` joined by ``|``, SHA-256): the same parts give the
-    same seed on every machine and in every process."""
-    h = hashlib.sha256("|".join(str(p) for p in parts).encode()).digest()
-    return int.from_bytes(h[:4], "little")

@@ -1,7 +1,7 @@
 """Derivation: unit results -> the public table (:func:`derive_table`).
 
 The table is derived from the per-sequence rows of the stored unit results, never accumulated by
-hand; see :mod:`benchmark.results` for the unit-result dict and the unit conventions.
+hand; see :mod:`benchmark.work_units` for the unit-result dict and the unit conventions.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from benchmark.fit_diagnostics import cell_diagnostics
 from benchmark.work_units import (
     TABLE_FORMAT_VERSION,
     WorkUnit,
-    _spec_field,
+    spec_field,
     canonical_json,
     grid_cells,
     metric_specs,
@@ -79,7 +79,7 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
         raise ValueError("derive_table: meta['profile'] must be the profile dict with its 'name' (catalog.get_profile)")
     metrics = metric_specs(table_spec)
     cells = grid_cells(table_spec)
-    grid_keys = list(_spec_field(table_spec, "grid"))
+    grid_keys = list(spec_field(table_spec, "grid"))
     clash = [m["name"] for m in metrics if m["name"] in grid_keys]
     if clash:
         raise ValueError(f"{spec_source(table_spec)}: metric name(s) {clash} collide with grid axes")

@@ -81,11 +81,11 @@ def ground_truth_pose(body, motions, timestamps):
     import roma
     import torch
 
-    from benchmark.motion_posing import _resample_stack, _stack_shapes
+    from benchmark.motion_posing import resample_stack, stack_shapes
 
     ts = torch.as_tensor(timestamps, dtype=torch.float64).cpu()
-    poses, trans = _resample_stack(motions, ts, torch.ones(ts.shape, dtype=torch.bool))
-    shapes = _stack_shapes(body, motions, None, torch.float32, "cpu")
+    poses, trans = resample_stack(motions, ts, torch.ones(ts.shape, dtype=torch.bool))
+    shapes = stack_shapes(body, motions, None, torch.float32, "cpu")
     return roma.rotvec_to_rotmat(torch.as_tensor(poses, dtype=torch.float64)), torch.as_tensor(trans), shapes
 
 

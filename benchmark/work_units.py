@@ -1,8 +1,27 @@
 """Work units and their stored results: canonical JSON and hashes, atomic files, table-spec
 helpers, unit planning (:func:`plan_units`), unit-result validation, checksums and loading.
 
-See :mod:`benchmark.results` for the unit-result dict and how the public table is derived from
-these results (:mod:`benchmark.table_derive`).
+A table run is split into independent *work units*: one prior x one grid cell x one batch of
+sequences (:class:`WorkUnit`, planned by :func:`plan_units`). Each unit is fitted and evaluated by
+the protocol (an ``execute(unit) -> dict`` callable that the caller provides) and its result is
+stored as one JSON file per unit (:mod:`benchmark.runner` writes them). The public table is
+*derived* from those per-sequence rows (:func:`benchmark.table_derive.derive_table`), never
+accumulated by hand.
+
+Unit-result dict (what ``execute`` returns; validated by :func:`validate_unit_result`)::
+
+    {"unit_id": str, "spec_hash": str, "prior": str, "cell": {...}, "sequence_ids": [str],
+     "fingerprint": str,                 # hash of the degraded observation this unit saw
+     "per_sequence": [{"id": str, "frames": int,
+                       "sums": {"chamfer_m": float, "chamfer_surface_m": float, "mpjpe_m": float}}],
+     "timings": {"fit_s": float, "eval_s": float},
+     "device": str,
+     "na_reason": None | str}            # a unit whose prior cannot serve the cell: reason, no rows
+
+Metric sums are SI (metres) summed over the output frames of one sequence, so merging is
+addition: the mean over all frames of all sequences is ``total sum / total frames``. The
+derivation (:mod:`benchmark.table_derive`) is the one place that converts to reported units
+(``chamfer_m`` -> ``chamfer_mm``, :data:`UNIT_CONVERSIONS`).
 """
 
 from __future__ import annotations
@@ -16,6 +35,7 @@ import math
 import os
 import re
 import tempfile
+from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -129,7 +149,7 @@ def spec_source(table_spec: Mapping) -> str:
     return str(table_spec.get("_source") or f"benchmark/tables/{table_spec.get('name', '<unnamed>')}.yaml")
 
 
-def _spec_field(table_spec: Mapping, key: str):
+def spec_field(table_spec: Mapping, key: str):
     if key not in table_spec:
         raise ValueError(f"{spec_source(table_spec)}: field {key!r} is missing; add it (see benchmark/tables/table1.yaml)")
     return table_spec[key]
@@ -138,7 +158,7 @@ def _spec_field(table_spec: Mapping, key: str):
 def grid_cells(table_spec: Mapping) -> list[dict]:
     """Every cell of the spec's ``grid`` in grid order: the product of the value lists, the first
     key varying slowest (table1: points=100/fps=5, points=100/fps=10, points=1000/fps=5, ...)."""
-    grid = _spec_field(table_spec, "grid")
+    grid = spec_field(table_spec, "grid")
     if not isinstance(grid, Mapping) or not grid:
         raise ValueError(f"{spec_source(table_spec)}: field 'grid' must map each axis to a list of values, got {grid!r}")
     for key, values in grid.items():
@@ -161,7 +181,7 @@ def table_rules(table_spec: Mapping) -> dict:
 
 def metric_specs(table_spec: Mapping) -> list[dict]:
     """The spec's ``metrics`` list, validated: each ``{name, better: lower|higher, description}``."""
-    metrics = _spec_field(table_spec, "metrics")
+    metrics = spec_field(table_spec, "metrics")
     if not isinstance(metrics, list) or not metrics:
         raise ValueError(f"{spec_source(table_spec)}: field 'metrics' must be a non-empty list")
     out, seen = [], set()
@@ -269,8 +289,8 @@ def plan_units(
     Returns units in prior-major, then grid, then batch order.
     """
     src = spec_source(table_spec)
-    table = _spec_field(table_spec, "name")
-    protocol_version = _spec_field(table_spec, "protocol_version")
+    table = spec_field(table_spec, "name")
+    protocol_version = spec_field(table_spec, "protocol_version")
     cells = grid_cells(table_spec)
     rules = table_rules(table_spec)
     metric_specs(table_spec)  # validate early
@@ -449,3 +469,60 @@ def load_unit_results(out_dir: str | os.PathLike, units: Iterable[WorkUnit]) -> 
             continue
         found.append(result)
     return found
+
+
+# -- what the protocols and the runner share about a unit -------------------------------------------
+def select_sequences(motions_by_id: dict, count) -> list[str]:
+    """A deterministic selection spread evenly over subjects (round robin over sorted ids)."""
+    ids = sorted(motions_by_id)
+    if count == "all" or count is None or int(count) >= len(ids):
+        return ids
+    groups = defaultdict(list)
+    for sid in ids:
+        groups[motions_by_id[sid].meta.get("subject", "")].append(sid)
+    # spread within each subject too: take evenly spaced sequences
+    n = int(count)
+    order = sorted(groups)
+    chosen = []
+    for i, s in enumerate(order):
+        g, q = groups[s], n // len(order) + (1 if i < n % len(order) else 0)
+        step = len(g) / max(q, 1)
+        chosen += [g[int(k * step)] for k in range(min(q, len(g)))]
+    return sorted(chosen)
+
+
+def stable_seed(*parts) -> int:
+    """A 32-bit seed from any parts (their ``str`` joined by ``|``, SHA-256): the same parts give the
+    same seed on every machine and in every process."""
+    h = hashlib.sha256("|".join(str(p) for p in parts).encode()).digest()
+    return int.from_bytes(h[:4], "little")
+
+
+_NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
+
+
+def estimate_cost(unit) -> float:
+    """A unit's relative cost for ordering (only its rank matters): the number of sequences times
+    the product of ``1 + |v|`` over the numbers in its cell (table1: points and fps; sls:
+    ``p10000`` reads as 10000). A heuristic: more observed points, frames, noise or gap cost more."""
+    cost = float(max(1, len(unit.sequence_ids)))
+    for value in unit.cell.values():
+        if isinstance(value, bool):
+            continue
+        if isinstance(value, (int, float)):
+            numbers = [float(value)]
+        else:
+            numbers = [float(m) for m in _NUMBER.findall(str(value))]
+        for v in numbers:
+            if math.isfinite(v):
+                cost *= 1.0 + abs(v)
+    return cost
+
+
+def na_result(unit, reason: str) -> dict:
+    """The result of a unit that a prior cannot serve: no numbers, the reason in the JSON."""
+    return {
+        "unit_id": unit.unit_id, "spec_hash": unit.spec_hash, "prior": unit.prior, "cell": dict(unit.cell),
+        "sequence_ids": list(unit.sequence_ids), "fingerprint": "n/a", "per_sequence": [],
+        "timings": {"fit_s": 0.0, "eval_s": 0.0}, "device": "none", "na_reason": reason,
+    }

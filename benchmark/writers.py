@@ -1,4 +1,4 @@
-"""Write a derived table (the JSON of :func:`benchmark.results.derive_table`) as files people read.
+"""Write a derived table (the JSON of :func:`benchmark.table_derive.derive_table`) as files people read.
 
 - ``<stem>.json``: the table itself (atomic write).
 - ``<stem>.md``: Markdown: a header (title, profile, protocol version, device, seed, revision), one
@@ -22,7 +22,7 @@ from typing import Mapping, Sequence
 
 from benchmark.fit_diagnostics import (BACKWARDS_DEG, CONVERGED_MAX_DECREASE, CONVERGENCE_WINDOW, FLAG, MISORIENTED_DEG,
                                       cell_flagged)
-from benchmark.results import atomic_write_json, atomic_write_text
+from benchmark.work_units import atomic_write_json, atomic_write_text
 
 log = logging.getLogger(__name__)
 

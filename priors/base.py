@@ -348,9 +348,15 @@ class Trainable(abc.ABC):
 
     @classmethod
     @abc.abstractmethod
-    def train_embedded(cls, out_dir=None, steps: int | None = None, seed: int = 0, overwrite: bool = False) -> dict:
+    def train_embedded(cls, out_dir=None, steps: int | None = None, seed: int = 0, overwrite: bool = False,
+                       dataset=None) -> dict:
         """Train the embedded weights into ``out_dir`` (default: beside ``default_weights``); refuse to
-        overwrite an existing checkpoint unless ``overwrite``. Returns the training record."""
+        overwrite an existing checkpoint unless ``overwrite``. Returns the training record.
+
+        ``dataset``: the training data, handed over by the caller (``python -m benchmark train``
+        passes :class:`benchmark.synthetic.train_data.SyntheticTrainingData`; the interface is in
+        :mod:`priors.training`, :func:`~priors.training.split_motions`): a prior never builds its
+        training data itself."""
 
 
 class ExportableDecoder(abc.ABC):

@@ -129,21 +129,10 @@ def load_state_strict(
     return sorted(mapped), (unexpected if ignore_unexpected else [])
 
 
-def project_payload(ckpt: object, file: str | Path, what: str, fix: str) -> tuple[dict, dict]:
-    """(state_dict, config) of a project checkpoint ``{"state_dict": {...}, "config": {...}}`` (what
-    :func:`priors.training.save_checkpoint` writes); a ValueError naming ``file``, what it holds and
-    ``fix`` otherwise."""
-    if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict) or not isinstance(ckpt.get("config"), dict):
-        top = sorted(map(str, ckpt))[:20] if isinstance(ckpt, dict) else type(ckpt).__name__
-        raise ValueError(f"{file}: not a {what} project checkpoint: expected a dict with 'state_dict' and 'config', "
-                         f"found {top}; {fix}")
-    return ckpt["state_dict"], ckpt["config"]
-
-
 def check_size(prior: str, size: str) -> None:
     """A ValueError unless ``size`` is "embedded" or "paper"."""
     if size not in ("embedded", "paper"):
         raise ValueError(f"{prior}: unknown size {size!r}; expected 'embedded' or 'paper'")
 
 
-__all__ = ["CheckpointMismatchError", "CheckpointReport", "check_size", "load_state_strict", "project_payload"]
+__all__ = ["CheckpointMismatchError", "CheckpointReport", "check_size", "load_state_strict"]

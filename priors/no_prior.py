@@ -6,11 +6,13 @@ Latents: ``{"pose": (B, n_observed, 21, 6)}``, the local rotations of SMPL joint
 identity (the protocol owns root orientation and translation) and the prior term is zero. It is
 what VPoser+SLERP would be without VPoser: the protocol's SLERP/LERP fills the other frames.
 
-No network: ``export_decoder`` raises (nothing learned to export; ``export-onnx no-prior`` is a
-clear error) and there is no ``paper_network``. ``encode_motion`` is the exact, lossless change of
-representation (6D of joints 1..21), useful to start a fit from a given motion; ``has_encoder``
-stays False because it is not a learned encoder, so the reconstruction table (encode then decode)
-would only measure float round-off for this row.
+No network: it is not an :class:`~priors.base.ExportableDecoder` (``export_decoder`` raises:
+nothing learned to export; ``export-onnx no-prior`` is a clear error) nor a
+:class:`~priors.base.PaperNetwork`. It is a :class:`~priors.base.MotionEncoder`: ``encode_motion``
+is the exact, lossless change of representation (6D of joints 1..21), which table1's per-frame
+start search uses to set a pose in the latents; ``has_encoder`` is False because it is not a learned
+encoder, so the tables that measure or start from an encoder leave it out (the reconstruction
+table, encode then decode, would only measure float round-off for this row).
 """
 
 from __future__ import annotations
@@ -19,12 +21,12 @@ import torch
 
 from benchmark.rotations import matrix_to_sixd, sixd_to_matrix
 from benchmark.skeleton import NUM_JOINTS
-from priors.base import Decoded, FitBatch, PriorAdapter, WindowSpec
+from priors.base import Decoded, FitBatch, MotionEncoder, PriorAdapter, WindowSpec
 
 NUM_BODY_JOINTS = NUM_JOINTS - 1
 
 
-class NoPrior(PriorAdapter):
+class NoPrior(MotionEncoder, PriorAdapter):
     """Per-observed-frame poses fitted directly; no learned model, no weights, zero prior term."""
 
     name = "no-prior"
@@ -34,7 +36,7 @@ class NoPrior(PriorAdapter):
     encodes_root_orientation = False
     joints = tuple(range(1, NUM_JOINTS))
     sixd_layout = "interleaved"
-    has_encoder = False
+    has_encoder = False  # a MotionEncoder, but an exact change of representation: the tables leave it out
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=weights, device=device)
@@ -42,7 +44,6 @@ class NoPrior(PriorAdapter):
             raise ValueError(f"no-prior has no weights; got weights={weights!r} (drop the --weights no-prior=... option)")
         if size not in ("embedded", "paper"):
             raise ValueError(f"no-prior: unknown size {size!r}; expected 'embedded' or 'paper' (both are the same)")
-        self._device = torch.device(device)
 
     def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """``{"pose": (B, n_observed, 21, 6)}`` at the identity (deterministic; ``generator`` unused)."""

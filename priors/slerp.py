@@ -9,7 +9,7 @@ runs as an ordinary row of ``python -m benchmark run inbetween --prior slerp``:
 - ``encode_motion`` returns the observed rotations themselves (exact: Gram-Schmidt of the first two
   columns of a rotation matrix gives it back), root orientation and translation are the protocol's
   per-observed-frame variables, set from the observed frames;
-- ``interpolation_baseline = True`` tells the motion protocols (benchmark/protocols/inbetween.py)
+- the :class:`~priors.base.InterpolationBaseline` interface tells the motion protocols (benchmark/protocols/inbetween.py)
   to take these latents and rigid parameters as they are, with no optimisation: the per-frame
   machinery of the protocol (``benchmark.protocols.completion.body_parameters``) then SLERPs the
   rotations and LERPs the translation between the last context frame and the key frame.
@@ -25,16 +25,16 @@ import torch
 
 from benchmark.rotations import matrix_to_sixd
 from benchmark.skeleton import NUM_JOINTS
+from priors.base import InterpolationBaseline, Trainable
 from priors.no_prior import NoPrior
 
 
-class SlerpBaseline(NoPrior):
+class SlerpBaseline(InterpolationBaseline, Trainable, NoPrior):
     """SLERP of local rotations, LERP of translation, between observed frames (no optimisation)."""
 
     name = "slerp"
     paper = "baseline: SLERP of local joint rotations + LERP of translation between observed frames (HM-VAE Table 2)"
-    has_encoder = True
-    interpolation_baseline = True
+    has_encoder = True  # its encode_motion (the observed rotations) is what the in-betweening table starts from
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         if weights is not None:
@@ -51,6 +51,6 @@ class SlerpBaseline(NoPrior):
         return {"pose": matrix_to_sixd(rotations[:, :, 1:].detach().float(), layout="interleaved").to(self._device)}
 
     @classmethod
-    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
+    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False, dataset=None) -> dict:
         """Nothing to train: returns a record that says so and writes nothing."""
         return {"prior": cls.name, "trained": False, "note": "the SLERP baseline has no parameters"}

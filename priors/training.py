@@ -5,8 +5,8 @@ training split (``benchmark.synthetic.splits.build_split("train")``), on a CPU, 
 ships with a JSON record beside it (data, sizes, steps, seed, wall time, losses, library versions,
 date). A prior's own module owns its network and loss; this module owns what they share:
 
-- :func:`load_split_motions` / :func:`pose_frames`: motions of a split, and a seeded subsample of
-  their frames as axis-angle poses (N, 22, 3).
+- :func:`split_motions` / :func:`pose_frames`: the motions of a split of the dataset the caller
+  hands the recipe, and a seeded subsample of their frames as axis-angle poses (N, 22, 3).
 - :func:`fixed_rest_skeleton`: the fixed rest skeleton (22, 3) used by forward-kinematics losses.
 - :func:`seed_everything` and :func:`train_loop`: a seeded Adam loop over random mini-batches.
 - :func:`save_checkpoint` / :func:`write_record`: atomic writes of the weights and the record.
@@ -30,58 +30,30 @@ from typing import Callable
 import torch
 
 from benchmark.safe_loading import UnsafeFileError, torch_load_weights
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
 
 log = logging.getLogger(__name__)
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 
-# An SMPL-like neutral rest skeleton (metres; y up, facing +z, left at +x; pelvis at the origin),
-# rounded values of the typical SMPL neutral T-pose joint layout. Used only when the embedded Anny
-# body cannot be built, as the fixed skeleton of a training loss; it is not a body model.
-SMPL_LIKE_REST_JOINTS = (
-    (0.000, 0.000, 0.000),  # pelvis
-    (0.070, -0.090, -0.005),  # left_hip
-    (-0.068, -0.090, -0.006),  # right_hip
-    (0.000, 0.110, -0.025),  # spine1
-    (0.105, -0.475, 0.010),  # left_knee
-    (-0.105, -0.475, 0.010),  # right_knee
-    (0.000, 0.245, -0.020),  # spine2
-    (0.090, -0.880, -0.045),  # left_ankle
-    (-0.090, -0.880, -0.045),  # right_ankle
-    (0.000, 0.300, 0.005),  # spine3
-    (0.115, -0.940, 0.075),  # left_foot
-    (-0.115, -0.940, 0.075),  # right_foot
-    (0.000, 0.510, -0.035),  # neck
-    (0.075, 0.420, -0.020),  # left_collar
-    (-0.075, 0.420, -0.020),  # right_collar
-    (0.000, 0.580, 0.015),  # head
-    (0.170, 0.450, -0.030),  # left_shoulder
-    (-0.170, 0.450, -0.030),  # right_shoulder
-    (0.425, 0.440, -0.050),  # left_elbow
-    (-0.425, 0.440, -0.050),  # right_elbow
-    (0.680, 0.445, -0.050),  # left_wrist
-    (-0.680, 0.445, -0.050),  # right_wrist
-)
-
 
 # -- data ------------------------------------------------------------------------------------
-def load_split_motions(split: str) -> list:
-    """The synthetic split's motions (``benchmark.synthetic.splits.build_split``), cached on disk by it.
-
-    Raises a clear error when the synthetic generator is not available.
-    """
-    try:
-        from benchmark.synthetic.splits import build_split
-    except ImportError as exc:
-        raise RuntimeError(
-            f"cannot load the synthetic {split!r} split: benchmark/synthetic/splits.py "
-            f"(build_split) is not importable ({exc}). Train on explicit poses instead "
-            "(pass poses=... to the prior's training function)."
-        ) from exc
-    motions = build_split(split)
+# A recipe never builds its training data: the caller hands it a *dataset*, an object with
+#   split(name) -> list of Motion   the motions of a split ("train", "val")
+#   source(name) -> str             where that split comes from (the training record says it)
+# and, for recipes that train on motion cycles, find_cycles(motion, **options) -> cycles. The
+# `train` command and the recipes' command lines pass
+# benchmark.synthetic.train_data.SyntheticTrainingData (the synthetic splits).
+def split_motions(dataset, split: str) -> list:
+    """The motions of ``split`` of ``dataset`` (above); a clear error when no dataset was given or the
+    split is empty."""
+    if dataset is None:
+        raise ValueError(f"no training data for the {split!r} split: pass dataset= (what `python -m benchmark train` "
+                         "passes: benchmark.synthetic.train_data.SyntheticTrainingData()) or explicit training data "
+                         "(poses=, windows=, motions= of the prior's training function)")
+    motions = dataset.split(split)
     if not motions:
-        raise RuntimeError(f"benchmark.synthetic.splits.build_split({split!r}) returned no motions")
+        raise RuntimeError(f"{dataset.source(split)} returned no motions")
     return list(motions)
 
 
@@ -148,7 +120,7 @@ def fixed_rest_skeleton() -> tuple[torch.Tensor, str]:
     """(22, 3) rest joint positions (metres, pelvis at the origin) and where they come from.
 
     The default embedded Anny body's T-pose joints at its default shape when the body can be built,
-    else :data:`SMPL_LIKE_REST_JOINTS`. The source string goes into the training record.
+    else :data:`benchmark.skeleton.SMPL_LIKE_REST_JOINTS`. The source string goes into the training record.
     """
     try:
         from benchmark.body.anny_body import load_anny_body
@@ -160,7 +132,7 @@ def fixed_rest_skeleton() -> tuple[torch.Tensor, str]:
     except Exception as exc:  # the fallback is documented and recorded
         log.warning("embedded Anny body unavailable (%s: %s); using the SMPL-like fallback skeleton", type(exc).__name__, exc)
         return torch.tensor(SMPL_LIKE_REST_JOINTS, dtype=torch.float32), (
-            f"SMPL-like fallback skeleton (priors/training.py SMPL_LIKE_REST_JOINTS); Anny body unavailable: {type(exc).__name__}"
+            f"SMPL-like fallback skeleton (benchmark/skeleton.py SMPL_LIKE_REST_JOINTS); Anny body unavailable: {type(exc).__name__}"
         )
 
 
@@ -404,17 +376,6 @@ def save_checkpoint(path: str | Path, state_dict: dict, config: dict) -> Path:
     return path
 
 
-def embedded_weights(name: str, weights: str | Path | None, default_weights: Path, otherwise: str = "") -> Path:
-    """The checkpoint a prior's ``size="embedded"`` loads: ``weights`` if given, else ``default_weights``.
-    When it is absent: FileNotFoundError naming the file, the command that trains it and ``otherwise``
-    (e.g. where the official weights are)."""
-    path = Path(weights) if weights is not None else default_weights
-    if not path.exists():
-        raise FileNotFoundError(f"embedded {name} weights not found: {path}. Train them with "
-                                f"`python -m benchmark train {name}`" + (f", {otherwise}" if otherwise else ""))
-    return path
-
-
 def embedded_out_dir(out_dir: str | Path | None, default_weights: Path, overwrite: bool) -> Path:
     """The folder a prior's ``train_embedded`` writes to: ``out_dir``, or by default the folder of
     ``default_weights``; refuses (FileExistsError) when it already holds that checkpoint and
@@ -519,8 +480,7 @@ def write_record(path: str | Path, record: dict) -> Path:
 
 __all__ = [
     "WEIGHTS_DIR",
-    "SMPL_LIKE_REST_JOINTS",
-    "load_split_motions",
+    "split_motions",
     "pose_frames",
     "fixed_rest_skeleton",
     "seed_everything",

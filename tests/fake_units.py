@@ -13,7 +13,7 @@ import hashlib
 import numpy as np
 
 from benchmark.catalog import load_table_spec
-from benchmark.results import plan_units
+from benchmark.work_units import plan_units
 
 PRIORS = ["vposer-slerp", "hmvae", "sequential-primitives"]
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from benchmark.compare import compare_tables
-from benchmark.results import metric_specs
+from benchmark.work_units import metric_specs
 from benchmark.writers import write_table
 
 TABLE_TOLERANCES = {"table1": {"chamfer_mm": 1.0, "chamfer_surface_mm": 1.0, "mpjpe_mm": 3.0}}

@@ -96,7 +96,11 @@ def test_walkthrough_registered_at_run_time(tmp_path, monkeypatch, capsys):
 
         from benchmark.registry import make_adapter
 
+        from priors.base import MotionEncoder, Trainable, interfaces_of
+
         a = make_adapter(NAME)
+        assert isinstance(a, MotionEncoder) and isinstance(a, Trainable) and a.has_encoder
+        assert interfaces_of(a) == ["MotionEncoder", "Trainable"]
         rot = torch.eye(3).expand(2, 5, 22, 3, 3)
         z = a.encode_motion(rot, torch.zeros(2, 5, 3), torch.zeros(2, 5))["z"]
         assert z.shape == (2, 5, 8)
@@ -105,6 +109,7 @@ def test_walkthrough_registered_at_run_time(tmp_path, monkeypatch, capsys):
         assert math.isfinite(record["final_loss"])
         trained = make_adapter(NAME, weights=record["weights"])
         assert trained.weights_path == record["weights"]
+        assert trained.checkpoint.format == "project" and trained.checkpoint.file == Path(record["weights"])
     finally:
         registry.unregister(NAME)
         forget_module()

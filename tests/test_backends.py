@@ -19,9 +19,10 @@ from pathlib import Path
 import pytest
 
 from benchmark import runner
-from benchmark.backends import ProcessBackend, RayBackend, affinity_key, estimate_cost, longest_first, make_backend, pick_next
+from benchmark.backends import BACKENDS, ProcessBackend, RayBackend, affinity_key, longest_first, make_backend, pick_next
 from benchmark.catalog import get_profile, load_table_spec
 from benchmark.protocols.table_run import run_table
+from benchmark.work_units import estimate_cost
 from fake_units import FakeExecutor, plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -202,8 +203,8 @@ def test_a_worker_keeps_to_its_cells_and_takes_others_only_at_the_end():
 
 
 def test_backend_options_are_checked():
-    assert make_backend("local") is runner.BACKENDS["local"]
-    assert make_backend("local", jobs=1) is runner.BACKENDS["local"]
+    assert make_backend("local") is BACKENDS["local"]
+    assert make_backend("local", jobs=1) is BACKENDS["local"]
     assert isinstance(make_backend("local", jobs=3), ProcessBackend)
     ray_backend = make_backend("ray", device="cuda")
     assert isinstance(ray_backend, RayBackend) and ray_backend.gpus_per_unit == 1 and ray_backend.cpus_per_unit == 1

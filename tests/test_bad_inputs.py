@@ -394,9 +394,9 @@ def _(tmp, mp):
 
 @case("describe: corrupt embedded weights", "describe", "motion_dvae.pt", "git checkout", "train motion-dvae")
 def _(tmp, mp):
-    import priors.motion_dvae.adapter as module
+    from priors.motion_dvae import MotionDVAEPrior
 
-    mp.setattr(module, "DEFAULT_WEIGHTS", truncated_copy(WEIGHTS / "motion_dvae.pt", tmp / "motion_dvae.pt"))
+    mp.setattr(MotionDVAEPrior, "default_weights", truncated_copy(WEIGHTS / "motion_dvae.pt", tmp / "motion_dvae.pt"))
     return ["describe", "motion-dvae"]
 
 
@@ -606,7 +606,7 @@ def _pl_no_units(mp):
     def started(*args, **kwargs):
         raise AssertionError("a work unit was planned or run: the bad input was not refused while loading")
 
-    mp.setattr("benchmark.results.plan_units", started)
+    mp.setattr("benchmark.work_units.plan_units", started)
     mp.setattr("benchmark.runner.run_units", started)
 
 

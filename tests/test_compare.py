@@ -7,7 +7,7 @@ import json
 import pytest
 
 from benchmark.compare import compare_tables, default_tolerance, format_report, main_compare, parse_tolerances
-from benchmark.results import derive_table
+from benchmark.table_derive import derive_table
 from fake_units import FakeExecutor, meta, plan, table_spec
 
 

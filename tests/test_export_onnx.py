@@ -18,7 +18,7 @@ from benchmark.export_onnx import (
     sha256_file,
     sidecar_path,
 )
-from priors.base import ExportSpec
+from priors.base import ExportableDecoder, ExportSpec
 from priors.no_prior import NoPrior
 from priors.vposer import VPoserSlerp
 from priors.vposer.checkpoint import DEFAULT_WEIGHTS
@@ -107,8 +107,8 @@ class _FrozenBatch(nn.Module):
         return x.new_zeros(int(x.shape[0]), x.shape[1]) + 2 * x
 
 
-class _Adapter:
-    name, size, weights_path = "frozen", "embedded", None
+class _Adapter(ExportableDecoder):
+    name, size, paper, weights_path = "frozen", "embedded", "", None
 
     def __init__(self, module):
         self.module = module

@@ -1,4 +1,4 @@
-"""The facing search of a fit (benchmark.protocols.completion.facing_search): a body that faces away
+"""The facing search of a fit (benchmark.protocols.facing.facing_search): a body that faces away
 from +z is fitted facing the right way, the same rule for every prior; the default fit rule of
 table1 protocol v1 is unchanged."""
 
@@ -11,8 +11,8 @@ import torch
 
 from benchmark.motion import Motion
 from benchmark.observations import make_scans
-from benchmark.protocols.completion import (FACING_RULES, _mean_heading, facing_search, fit, observation_batch,
-                                              observed_facing)
+from benchmark.protocols.completion import fit, observation_batch
+from benchmark.protocols.facing import FACING_RULES, facing_search, mean_heading, observed_facing
 
 
 def _turned_walker(yaw: float, frames: int = 20, fps: float = 10.0) -> Motion:
@@ -82,7 +82,7 @@ def test_every_prior_fits_through_the_facing_search(anny_body, prior):
     start, log = observed_facing(adapter, anny_body, batch, torch.Generator().manual_seed(0), "cpu", lr=0.03,
                                  lambda_prior=0.01)
     target = torch.tensor(log["facing_yaw_rad"], dtype=torch.float32)
-    turned = _mean_heading(start, batch)
+    turned = mean_heading(start, batch)
     assert torch.allclose(torch.remainder(turned - target + math.pi, 2 * math.pi) - math.pi, torch.zeros(2), atol=1e-3)
     err = torch.remainder(target - torch.tensor([math.pi, 0.5]) + math.pi, 2 * math.pi) - math.pi
     assert (err.abs() <= math.pi / 4 + 1e-6).all(), log
@@ -100,26 +100,26 @@ def test_every_prior_fits_through_the_facing_search(anny_body, prior):
 def test_observation_facing_is_searched_once_per_observation(anny_body, monkeypatch):
     """Every prior of a cell sees the same observation: the prior-free facing search runs once per
     observation and process, and the result served again is bit for bit the one computed afresh."""
-    from benchmark.protocols import facing as completion  # the facing search's module (completion re-exports it)
+    from benchmark.protocols import facing
 
     scans, _ = make_scans(anny_body, [_turned_walker(math.pi, frames=6)], fps=10.0, num_points=120, seed=0)
     batch = observation_batch(scans, 0.6, (torch.arange(4, dtype=torch.float64) / 6.0)[None], "cpu")
     other, _ = make_scans(anny_body, [_turned_walker(0.5, frames=6)], fps=10.0, num_points=120, seed=0)
     batch2 = observation_batch(other, 0.6, (torch.arange(4, dtype=torch.float64) / 6.0)[None], "cpu")
     calls = []
-    real = completion.facing_search
-    monkeypatch.setattr(completion, "facing_search", lambda *a, **k: calls.append(1) or real(*a, **k))
-    monkeypatch.setattr(completion, "_FACING_CACHE", completion.OrderedDict())
+    real = facing.facing_search
+    monkeypatch.setattr(facing, "facing_search", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(facing, "_FACING_CACHE", facing.OrderedDict())
     args = dict(device="cpu", lr=0.03, lambda_prior=0.01)
-    yaw1, log1 = completion.observation_facing(anny_body, batch, torch.Generator().manual_seed(0), **args)
+    yaw1, log1 = facing.observation_facing(anny_body, batch, torch.Generator().manual_seed(0), **args)
     g = torch.Generator().manual_seed(5)
     state = g.get_state()
-    yaw2, log2 = completion.observation_facing(anny_body, batch, g, **args)
+    yaw2, log2 = facing.observation_facing(anny_body, batch, g, **args)
     assert len(calls) == 1 and torch.equal(yaw1, yaw2) and log1 == log2
     assert torch.equal(g.get_state(), state)  # a served result draws nothing, as the search itself
-    completion.observation_facing(anny_body, batch2, g, **args)  # another observation: searched
-    completion.observation_facing(anny_body, batch, g, lr=0.02, lambda_prior=0.01, device="cpu")  # another lr
+    facing.observation_facing(anny_body, batch2, g, **args)  # another observation: searched
+    facing.observation_facing(anny_body, batch, g, lr=0.02, lambda_prior=0.01, device="cpu")  # another lr
     assert len(calls) == 3
-    monkeypatch.setattr(completion, "_FACING_CACHE", completion.OrderedDict())
-    yaw3, log3 = completion.observation_facing(anny_body, batch, torch.Generator().manual_seed(0), **args)
+    monkeypatch.setattr(facing, "_FACING_CACHE", facing.OrderedDict())
+    yaw3, log3 = facing.observation_facing(anny_body, batch, torch.Generator().manual_seed(0), **args)
     assert len(calls) == 4 and torch.equal(yaw1, yaw3) and log1 == log3

@@ -11,8 +11,8 @@ def _unit(body, frames=3, seed=0):
     8-nearest-vertex candidates are then an upper bound, the case where pruning matters most)."""
     import roma
 
-    from benchmark.observations import sample_surface
-    from benchmark.protocols.completion_unit import UnitData
+    from benchmark.protocols.unit_data import UnitData
+    from benchmark.surface_sampling import sample_surface
 
     g = torch.Generator().manual_seed(seed)
     rest = body.prepare(body.default_shape(1))

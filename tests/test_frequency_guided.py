@@ -7,7 +7,9 @@ import pytest
 import roma
 import torch
 
+from benchmark.frames import heading as heading_angle, yaw_matrix
 from benchmark.rotations import sixd_to_matrix
+from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 from priors.base import FitBatch
 from priors.frequency_guided import FrequencyGuidedPrior
@@ -20,10 +22,8 @@ from priors.frequency_guided.model import (
     MotionPrior,
     dct_matrix,
     frequency_features,
-    heading_angle,
     window_features,
     xu17_joints,
-    yaw_matrix,
 )
 from priors.frequency_guided.train import motion_prior_loss, prepare_windows, train_frequency_guided
 from priors.vposer.checkpoint import load_vposer_v1_state
@@ -176,7 +176,7 @@ def test_sixd_matches_benchmark_interleaved():
 def test_xu17_joint_mapping():
     from benchmark.body.lbs import forward_kinematics
 
-    rest = torch.tensor(training.SMPL_LIKE_REST_JOINTS)
+    rest = torch.tensor(SMPL_LIKE_REST_JOINTS)
 
     g, j = forward_kinematics(torch.eye(3).expand(1, 22, 3, 3), rest)
     p = xu17_joints(g, j)[0]
@@ -195,7 +195,8 @@ def test_paper_weights_load_strictly_from_folder_and_pairs(official, paper_adapt
             assert torch.equal(paper_adapter.network.motion_prior.state_dict()[k], v), k
     for k, v in official["vp"].items():
         assert torch.equal(paper_adapter.network.vposer.state_dict()[k], v), k
-    assert paper_adapter.checkpoint["motion_prior_keys"] == len(official["mp"])
+    assert len(paper_adapter.checkpoint.parts["motion_prior"].loaded) == len(official["mp"])
+    assert paper_adapter.checkpoint.files == [official["prior_file"], official["vposer_file"]]
     # a pair, in either order, as "a,b" or a tuple: each file is recognised by its keys
     a = FrequencyGuidedPrior(size="paper", weights=f"{official['vposer_file']},{official['prior_file']}")
     assert torch.equal(a.network.motion_prior.dct_att.weight, official["mp"]["dct_att.weight"])
@@ -209,7 +210,7 @@ def test_corrupted_official_files_fail_clearly(official, tmp_path):
     mp = {f"module.{k}": v for k, v in official["mp"].items()}
     model = MotionPrior(**{k: v for k, v in PAPER_CONFIG.items() if k != "vposer"})
     missing = {k: v for k, v in mp.items() if k != "module.bodyprior_dec_orient.bias"}
-    with pytest.raises(KeyError, match=r"bad\.pth.*missing keys \['bodyprior_dec_orient\.bias'\]"):
+    with pytest.raises(KeyError, match=r"bad\.pth.*missing keys \['module\.bodyprior_dec_orient\.bias'\]"):
         load_motion_prior_state(missing, model, "bad.pth")
     extra = {**mp, "module.bodyprior_dec_extra.weight": torch.zeros(1)}
     with pytest.raises(KeyError, match="unexpected keys.*bodyprior_dec_extra.weight"):
@@ -296,7 +297,7 @@ def test_encode_motion_is_heading_and_offset_invariant(tiny_adapter):
 
 def test_window_features_heading_normalised():
     rot, trans, _ = _fake_motion(2, 128, 30.0)
-    f = window_features(rot, trans, torch.tensor(training.SMPL_LIKE_REST_JOINTS))
+    f = window_features(rot, trans, torch.tensor(SMPL_LIKE_REST_JOINTS))
     assert torch.allclose(heading_angle(f["root_norm"][:, 0]), torch.zeros(2), atol=1e-5)
     assert torch.allclose(f["trans_norm"][:, 0], torch.zeros(2, 3))
     assert f["p3ds_norm"].shape == (2, 128, 51) and torch.allclose(f["p3ds_norm"][..., :3], torch.zeros(2, 128, 3))
@@ -325,7 +326,7 @@ def test_tiny_training_decreases_loss_and_writes(tmp_path):
     net, rec = train_frequency_guided(
         tmp_path, steps=20, vposer_steps=5, config=cfg, windows=windows, val_windows=windows[:2],
         batch_size=4, vposer_batch_size=128, lr=5e-3, log_every=1, loss_frames=16,
-        rest_joints=torch.tensor(training.SMPL_LIKE_REST_JOINTS),
+        rest_joints=torch.tensor(SMPL_LIKE_REST_JOINTS),
     )
     assert len(rec["history"]) == 20
     # the same initial motion prior (same seed) with the trained VPoser v1, in eval mode on the same windows

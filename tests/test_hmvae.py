@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 import torch
 
+from benchmark.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
 from benchmark.rotations import sixd_to_matrix
+from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 from priors.base import FitBatch
 from priors.hmvae import HMVAEPrior, HMVAETrajectoryPrior
@@ -16,10 +18,8 @@ from priors.hmvae.model import (
     PAPER_CONFIG,
     HMVAE,
     HMVAEConfig,
-    matrix_to_sixd_columns,
     official_state_dict,
     parameter_summary,
-    sixd_columns_to_matrix,
 )
 from priors.hmvae.skeleton import (
     PARENTS24,
@@ -66,7 +66,7 @@ def _windows(n: int, frames: int, seed: int = 0) -> torch.Tensor:
 def _write_embedded(tmp_path, with_trajectory=True):
     torch.manual_seed(0)
     vae = _randomise(HMVAE(TINY), 1)
-    rest24 = rest_skeleton24(torch.tensor(training.SMPL_LIKE_REST_JOINTS))
+    rest24 = rest_skeleton24(torch.tensor(SMPL_LIKE_REST_JOINTS))
     training.save_checkpoint(tmp_path / "hmvae.pt", learnable_state_dict(vae),
                              {"kind": "hmvae", "model": TINY.to_dict(), "rest_skeleton": rest24.tolist()})
     traj = None
@@ -189,8 +189,8 @@ def test_official_legacy_checkpoint_loads_strictly_at_paper_size(tmp_path):
     vae, folder = _official_folder(tmp_path)
     save_official_format(folder / "gen_00005000.pt", {"bogus": torch.zeros(1)})  # an older snapshot: not chosen
     prior = HMVAEPrior(size="paper", weights=str(folder))
-    assert prior.vae_report.file.name == "gen_00250000.pt"
-    assert len(prior.vae_report.dropped) == sum(1 for k in vae.state_dict() if k.startswith("enc."))
+    assert prior.checkpoint.file.name == "gen_00250000.pt" and prior.checkpoint.format == "official-legacy"
+    assert len(prior.checkpoint.parts["vae"].ignored) == sum(1 for k in vae.state_dict() if k.startswith("enc."))
     loaded = prior.vae.state_dict()
     assert set(loaded) == set(vae.state_dict())
     assert all(torch.equal(loaded[k], v) for k, v in vae.state_dict().items())
@@ -235,7 +235,7 @@ def test_official_checkpoint_errors_are_clear(tmp_path, monkeypatch):
         load("gen_00000001.pt", bad)
     bad = dict(sd)
     bad.pop("dec.layers.3.2.bias")
-    with pytest.raises(KeyError, match=r"missing key 'dec\.layers\.3\.2\.bias'"):
+    with pytest.raises(KeyError, match=r"missing keys \['dec\.layers\.3\.2\.bias'\]"):
         load("missing.pt", bad)
     bad = dict(sd)
     bad["dec.enc.latent_enc_layers.0.bias"] = bad["dec.enc.latent_enc_layers.0.bias"] + 1
@@ -327,7 +327,7 @@ def test_onnx_export_parity(tmp_path):
 
 
 def test_tiny_training_runs_decrease_loss_and_load(tmp_path):
-    rest = torch.tensor(training.SMPL_LIKE_REST_JOINTS)
+    rest = torch.tensor(SMPL_LIKE_REST_JOINTS)
     w64 = _windows(16, 64, seed=1)
     _, rec = train_hmvae(tmp_path, steps=20, seed=0, config=TINY, windows=w64, val_windows=w64[:4], rest=rest,
                          batch_size=4, lr=3e-3, log_every=5)

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from benchmark.catalog import load_table_spec
-from benchmark.protocols.completion import LATENT_INITS, initial_latents
+from benchmark.protocols.fit_state import LATENT_INITS, initial_latents
 from benchmark.protocols.completion_unit import latent_init_rule
 from priors.base import FitBatch
 
@@ -54,9 +54,9 @@ def test_mean_latents_fit_the_adapter(prior):
     if kind == "per-frame":
         ts = batch.timestamps
     elif kind == "fixed":
-        from benchmark.protocols.completion import _grid
+        from benchmark.protocols.fit_state import decode_grid
 
-        ts = _grid(adapter, batch.window_s, batch.batch_size, "cpu")
+        ts = decode_grid(adapter, batch.window_s, batch.batch_size, "cpu")
     else:
         ts = batch.output_timestamps
     with torch.no_grad():

@@ -27,13 +27,14 @@ from test_import_cycles import ROOT, find_cycle, project_modules
 LAYERS: dict[str, tuple[str, ...]] = {
     # conventions and pure functions: the skeleton, rotations, frames, interpolation, the Motion
     # type, body models, metrics, and small utilities every layer shares (input checks, safe
-    # loading, argument types, signals, output folders, provenance, fit diagnostics)
+    # loading, argument types, signals, output folders, provenance, fit diagnostics, the work unit
+    # and its result: what the protocols and the runner exchange)
     "core": (
         "benchmark", "benchmark.skeleton", "benchmark.rotations", "benchmark.frames", "benchmark.interpolate",
         "benchmark.surface_sampling", "benchmark.motion_posing", "benchmark.motion", "benchmark.plausibility",
         "benchmark.safe_loading", "benchmark.argtypes", "benchmark.interrupts", "benchmark.outdir",
-        "benchmark.provenance", "benchmark.fit_diagnostics", "benchmark.tables", "benchmark.body.*",
-        "benchmark.metrics.*",
+        "benchmark.provenance", "benchmark.fit_diagnostics", "benchmark.work_units", "benchmark.tables",
+        "benchmark.body.*", "benchmark.metrics.*",
     ),
     # data: observations synthesised from motions, their degradation, loaders, the synthetic
     # generator and its splits, a table's test motions, the arrays a unit keeps
@@ -49,14 +50,14 @@ LAYERS: dict[str, tuple[str, ...]] = {
     # registry, the catalog of specs and profiles, the HTML report
     "run": (
         "benchmark.protocols.table_run", "benchmark.registry", "benchmark.catalog", "benchmark.backends",
-        "benchmark.runner", "benchmark.work_units", "benchmark.table_derive", "benchmark.writers",
+        "benchmark.runner", "benchmark.table_derive", "benchmark.writers",
         "benchmark.report.*",
     ),
     # the command line: one module per command
     "commands": (
         "benchmark.__main__", "benchmark.cli", "benchmark.cli_run", "benchmark.compare", "benchmark.complete",
         "benchmark.conformance", "benchmark.error_breakdown", "benchmark.export_onnx", "benchmark.fit_check",
-        "benchmark.perf", "benchmark.train_report", "benchmark.report.cli", "benchmark.synthetic.scan_set",
+        "benchmark.perf", "benchmark.train_report", "benchmark.report.cli",
     ),
 }
 ORDER = tuple(LAYERS)
@@ -237,7 +238,7 @@ def test_no_module_reexports_names_it_does_not_use():
 
 def test_layer_table_checks():
     """The checker itself: exact names beat patterns, unknown modules are refused."""
-    assert layer_of("benchmark.synthetic.scan_set") == "commands" and layer_of("benchmark.synthetic.splits") == "data"
+    assert layer_of("benchmark.synthetic.splits") == "data" and layer_of("benchmark.work_units") == "core"
     assert layer_of("benchmark.report.cli") == "commands" and layer_of("benchmark.report.build") == "run"
     try:
         layer_of("elsewhere.module")

@@ -7,10 +7,13 @@ import pytest
 import roma
 import torch
 
+from benchmark.frames import heading
+from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 from priors.base import FitBatch
 from priors.motion_dvae import MotionDVAEPrior
-from priors.motion_dvae.checkpoint import load_official, load_state_strict
+from priors.checkpoints import load_state_strict
+from priors.motion_dvae.checkpoint import load_official
 from priors.motion_dvae.model import (
     EMBEDDED_CONFIG,
     PAPER_CONFIG,
@@ -19,7 +22,6 @@ from priors.motion_dvae.model import (
     body_points,
     canonical_poses,
     canonicalise,
-    heading,
     motion_state,
     noisy_poses,
     pose_to_state,
@@ -31,7 +33,7 @@ from priors.motion_dvae.model import (
 from priors.motion_dvae.train import train_motion_dvae
 
 TINY = {"z_dim": 8, "hidden": 64, "mlp_hidden": 64}
-REST = torch.tensor(training.SMPL_LIKE_REST_JOINTS)
+REST = torch.tensor(SMPL_LIKE_REST_JOINTS)
 
 
 def smooth_windows(n: int, frames: int, seed: int = 0) -> torch.Tensor:
@@ -299,7 +301,7 @@ def test_official_weights_give_clear_errors(tmp_path):
     with pytest.raises(ValueError, match="shape"):
         bad = dict(net.state_dict())
         bad["state_std"] = torch.ones(3)
-        load_state_strict(MotionDVAE(**TINY), bad, "test")
+        load_state_strict(MotionDVAE(**TINY), bad, "test", "motion-dvae")
 
 
 # -- ONNX -------------------------------------------------------------------------------------

@@ -10,8 +10,9 @@ import torch
 from benchmark.catalog import get_profile, load_table_spec
 from benchmark.motion import Motion
 from benchmark.protocols import denoise, inbetween, motion_fit, reconstruction
-from benchmark.results import plan_units, si_metric
+from benchmark.work_units import plan_units, si_metric
 from benchmark.rotations import slerp_matrices
+from priors.base import MotionDenoiser
 from priors.no_prior import NoPrior
 from priors.slerp import SlerpBaseline
 
@@ -65,7 +66,7 @@ def _values(result, spec):
     return out
 
 
-class _EchoDenoiser(NoPrior):
+class _EchoDenoiser(MotionDenoiser, NoPrior):
     """A prior whose denoise_motion returns its input: its output is the observation."""
 
     name = "echo"

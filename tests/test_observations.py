@@ -17,21 +17,20 @@ import trimesh
 
 from benchmark.body.base import BodyModel, BodyOutput, RestState
 from benchmark.body.lbs import forward_kinematics, linear_blend_skinning, skinning_transforms
+from benchmark.motion_posing import capture_timestamps
 from benchmark.observations import (
     GroundTruth,
     Landmarks,
     NoisyJoints,
     PointCloudSequence,
-    capture_timestamps,
-    farthest_point_indices,
     ground_truth_at,
     make_landmarks,
     make_noisy_joints,
     make_scans,
-    sample_surface,
     virtual_marker_indices,
 )
 from benchmark.skeleton import NUM_JOINTS
+from benchmark.surface_sampling import farthest_point_indices, sample_surface
 
 HALF = torch.tensor([0.2, 0.5, 0.1], dtype=torch.float64)  # box half extents (m)
 

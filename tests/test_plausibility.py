@@ -311,25 +311,25 @@ def test_a_longer_shape_whose_extra_values_are_zero_is_a_warning(body, caplog):
 
 
 def test_shape_for_body_checks_and_keeps_plausible_shapes_bit_for_bit():
-    from benchmark.protocols.table_run import _shape_for_body
+    from benchmark.motion import shape_for_body
 
     anny = types.SimpleNamespace(name="anny", shape_dim=6)
     smpl = types.SimpleNamespace(name="smpl-neutral", model_type="smpl", shape_dim=10)
     m = motion(shape=torch.rand(6), body="anny")
-    assert torch.equal(_shape_for_body(m, anny).shape, m.shape)
+    assert torch.equal(shape_for_body(m, anny).shape, m.shape)
     betas = motion(shape=torch.randn(16), body="smplh")
-    assert torch.equal(_shape_for_body(betas, smpl).shape, betas.shape[:10])
+    assert torch.equal(shape_for_body(betas, smpl).shape, betas.shape[:10])
     short = motion(shape=torch.randn(8), body="smplx")
-    assert torch.equal(_shape_for_body(short, smpl).shape, torch.cat([short.shape, torch.zeros(2)]))
+    assert torch.equal(shape_for_body(short, smpl).shape, torch.cat([short.shape, torch.zeros(2)]))
     with pytest.raises(ValueError, match=r"data/a\.npz: field 'shape' has 300 values"):
-        _shape_for_body(motion(shape=torch.rand(300), body="anny"), anny, "data/a.npz")
-    other = _shape_for_body(motion(shape=torch.rand(300), body="anny"), smpl)  # another body's: neutral, as before
+        shape_for_body(motion(shape=torch.rand(300), body="anny"), anny, "data/a.npz")
+    other = shape_for_body(motion(shape=torch.rand(300), body="anny"), smpl)  # another body's: neutral, as before
     assert other.shape is None and other.body is None
 
 
 # ------------------------------------------------------------------------------------------------ normal data
 def test_the_synthetic_test_split_passes_every_check_silently(tmp_path, caplog):
-    from benchmark.protocols.table_run import _shape_for_body
+    from benchmark.motion import shape_for_body
     from benchmark.synthetic.splits import build_split
 
     anny = types.SimpleNamespace(name="anny", shape_dim=6)
@@ -337,7 +337,7 @@ def test_the_synthetic_test_split_passes_every_check_silently(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         for m in motions:
             assert P.check_motion(m, m.source) == []
-            assert torch.equal(_shape_for_body(m, anny, m.source).shape, m.shape)
+            assert torch.equal(shape_for_body(m, anny, m.source).shape, m.shape)
         again = Motion.load(motions[0].save(tmp_path / "m.npz"))
     assert plausibility_warnings(caplog) == []
     assert torch.equal(again.trans, motions[0].trans)

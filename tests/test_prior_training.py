@@ -6,6 +6,7 @@ import types
 import pytest
 import torch
 
+from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 
 
@@ -59,7 +60,7 @@ def test_outputs_are_written_and_readable(tmp_path):
 
 
 def test_fallback_skeleton_is_a_plausible_t_pose():
-    j = torch.tensor(training.SMPL_LIKE_REST_JOINTS)
+    j = torch.tensor(SMPL_LIKE_REST_JOINTS)
     assert j.shape == (22, 3) and torch.equal(j[0], torch.zeros(3))
     assert j[1, 0] > 0 > j[2, 0] and j[20, 0] > 0.5 > -0.5 > j[21, 0]  # left at +x, arms out
     assert j[15, 1] > j[12, 1] > j[9, 1] > 0 > j[4, 1] > j[7, 1]  # head up, feet down

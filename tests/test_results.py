@@ -7,7 +7,8 @@ import os
 import numpy as np
 import pytest
 
-from benchmark import results as R
+from benchmark.table_derive import derive_table
+from benchmark.work_units import atomic_write_json, atomic_write_text, canonical_json, validate_unit_result
 from benchmark.catalog import load_table_spec
 from benchmark.provenance import collect_provenance
 from fake_units import PRIORS, FakeExecutor, frame_errors, meta, plan, profile, table_spec
@@ -40,7 +41,7 @@ def test_plan_is_stable_and_seeds_are_a_stable_hash():
     assert u.seed == int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "big")
     assert u.seed == 2419270992  # golden: must not change between processes, machines or versions
     assert 0 <= u.seed < 2**32
-    assert u.spec_hash == hashlib.sha256(R.canonical_json(u.spec).encode()).hexdigest()
+    assert u.spec_hash == hashlib.sha256(canonical_json(u.spec).encode()).hexdigest()
     assert u.spec["seed"] == u.seed and u.spec["sequence_ids"] == u.sequence_ids and u.spec["cell"] == u.cell
 
 
@@ -93,25 +94,25 @@ def test_spec_without_grid_names_the_file_and_field():
 
 def test_atomic_write_replaces_and_leaves_no_temp(tmp_path):
     path = tmp_path / "sub" / "x.json"
-    R.atomic_write_json(path, {"a": 1})
-    R.atomic_write_json(path, {"a": 2})
+    atomic_write_json(path, {"a": 1})
+    atomic_write_json(path, {"a": 2})
     assert json.loads(path.read_text()) == {"a": 2}
     assert sorted(os.listdir(path.parent)) == ["x.json"]
     with pytest.raises(ValueError):  # NaN is never written
-        R.atomic_write_json(path, {"a": float("nan")})
+        atomic_write_json(path, {"a": float("nan")})
     assert json.loads(path.read_text()) == {"a": 2}
 
 
 def test_atomic_write_failure_keeps_the_old_file(tmp_path, monkeypatch):
     path = tmp_path / "x.txt"
-    R.atomic_write_text(path, "old")
+    atomic_write_text(path, "old")
 
     def broken_fsync(fd):
         raise OSError("disk full")
 
-    monkeypatch.setattr(R.os, "fsync", broken_fsync)
+    monkeypatch.setattr(os, "fsync", broken_fsync)
     with pytest.raises(OSError, match="disk full"):
-        R.atomic_write_text(path, "new")
+        atomic_write_text(path, "new")
     assert path.read_text() == "old"
     assert os.listdir(tmp_path) == ["x.txt"]  # the temp file was removed
 
@@ -121,24 +122,24 @@ def test_atomic_write_failure_keeps_the_old_file(tmp_path, monkeypatch):
 def test_validate_unit_result_rejects_bad_numbers_and_ids():
     unit = plan()[0]
     good = FakeExecutor()(unit)
-    assert R.validate_unit_result(good, unit) is good
+    assert validate_unit_result(good, unit) is good
     bad = json.loads(json.dumps(good))
     bad["per_sequence"][0]["sums"]["chamfer_m"] = float("nan")
     with pytest.raises(ValueError, match="not a finite number"):
-        R.validate_unit_result(bad, unit)
+        validate_unit_result(bad, unit)
     bad = json.loads(json.dumps(good))
     bad["per_sequence"][0]["id"] = "other"
     with pytest.raises(ValueError, match="differ from the unit's sequences"):
-        R.validate_unit_result(bad, unit)
+        validate_unit_result(bad, unit)
     bad = dict(good, spec_hash="0" * 64)
     with pytest.raises(ValueError, match="spec_hash"):
-        R.validate_unit_result(bad, unit)
+        validate_unit_result(bad, unit)
     bad = dict(good, na_reason="cannot")
     with pytest.raises(ValueError, match="no per_sequence rows"):
-        R.validate_unit_result(bad, unit)
+        validate_unit_result(bad, unit)
     bad = {k: v for k, v in good.items() if k != "fingerprint"}
     with pytest.raises(ValueError, match="fingerprint"):
-        R.validate_unit_result(bad, unit)
+        validate_unit_result(bad, unit)
 
 
 # ---------------------------------------------------------------- derivation
@@ -160,7 +161,7 @@ def test_mean_over_all_frames_differs_from_mean_of_sequence_means():
         r["per_sequence"] = [{"id": sid, "frames": frames, "sums": {"chamfer_m": frames * per_frame,
                                                                      "chamfer_surface_m": 0.0, "mpjpe_m": 0.0}}]
         results.append(r)
-    table = R.derive_table(table_spec(), results, meta(units, prof=profile(batch_sequences=1)))
+    table = derive_table(table_spec(), results, meta(units, prof=profile(batch_sequences=1)))
     cell = _cell(table, "p", 100, 5)
     assert cell["chamfer_mm"] == pytest.approx(2.5, abs=1e-12)
     assert cell["chamfer_mm_std"] == pytest.approx(1.0, abs=1e-12)
@@ -170,7 +171,7 @@ def test_mean_over_all_frames_differs_from_mean_of_sequence_means():
 def test_derived_cells_match_a_naive_per_frame_reference():
     units = plan(seqs=["a", "b", "c", "d", "e"])
     results = [FakeExecutor()(u) for u in units]
-    table = R.derive_table(table_spec(), results, meta(units))
+    table = derive_table(table_spec(), results, meta(units))
     assert [r["prior"] for r in table["rows"]] == PRIORS
     cell = _cell(table, "hmvae", 1000, 10)
     group = [u for u in units if u.prior == "hmvae" and u.cell == {"points": 1000, "fps": 10}]
@@ -183,7 +184,7 @@ def test_derived_cells_match_a_naive_per_frame_reference():
         assert cell[f"{metric}_mm"] != pytest.approx(1000 * np.mean([e.mean() for e in per_seq]), rel=1e-6)
     assert cell["frames"] == sum(len(frame_errors(u.seed, s, "chamfer_m")) for u in group for s in u.sequence_ids)
     assert cell["fingerprint"] == hashlib.sha256(
-        R.canonical_json(sorted(r["fingerprint"] for r in results if r["unit_id"] in {u.unit_id for u in group})).encode()
+        canonical_json(sorted(r["fingerprint"] for r in results if r["unit_id"] in {u.unit_id for u in group})).encode()
     ).hexdigest()
     assert table["counts"] == {"units_planned": 54, "units_done": 54, "cells": 18, "cells_na": 0}
     assert table["provenance"]["timings"]["fit_s"] == pytest.approx(54 * 1.5)
@@ -204,7 +205,7 @@ def test_na_and_incomplete_cells():
     dropped = next(u for u in units if u.prior == "vposer-slerp" and u.cell == {"points": 1000, "fps": 5})
     results = [r for r in results if r["unit_id"] != dropped.unit_id]
     order = {"hmvae": {}, "vposer-slerp": {}, "sequential-primitives": {}}  # priors may be a dict: its keys give the row order
-    table = R.derive_table(table_spec(), results, meta(units, priors=order))
+    table = derive_table(table_spec(), results, meta(units, priors=order))
     assert [r["prior"] for r in table["rows"]] == list(order)
     na = _cell(table, "hmvae", 100, 10)
     assert na["na_reason"] == "2 s windows cannot hold 100 points" and "chamfer_mm" not in na
@@ -220,7 +221,7 @@ def test_metric_missing_from_some_sequences_is_na_not_averaged():
     results = [FakeExecutor()(u) for u in units]
     for r in results:
         del r["per_sequence"][0]["sums"]["mpjpe_m"]  # first sequence of each batch has no joints
-    cell = _cell(R.derive_table(table_spec(), results, meta(units)), "p", 100, 5)
+    cell = _cell(derive_table(table_spec(), results, meta(units)), "p", 100, 5)
     assert cell["mpjpe_mm"] is None and cell["metric_na"]["mpjpe_mm"] == "incomplete: reported for 1 of 3 sequences"
     assert cell["chamfer_mm"] is not None
 
@@ -230,9 +231,9 @@ def test_derive_rejects_results_from_other_rules():
     old = [FakeExecutor()(u) for u in units]
     new_units = plan(spec=table_spec(lr=0.01))
     with pytest.raises(ValueError, match="computed under other rules"):
-        R.derive_table(table_spec(lr=0.01), old, meta(new_units))
+        derive_table(table_spec(lr=0.01), old, meta(new_units))
     with pytest.raises(ValueError, match="unknown meta key"):
-        R.derive_table(table_spec(), old, {**meta(units), "sed": 1})
+        derive_table(table_spec(), old, {**meta(units), "sed": 1})
 
 
 def test_provenance_has_versions_git_and_time():

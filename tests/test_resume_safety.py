@@ -19,7 +19,7 @@ import torch
 
 from benchmark import runner
 from benchmark.outdir import OutDirError, OutDirLock, check_out_dir
-from benchmark.results import atomic_write_json, checksum_problem, plan_units, unit_checksum, unit_path
+from benchmark.work_units import atomic_write_json, checksum_problem, plan_units, unit_checksum, unit_path
 from fake_units import FakeExecutor, plan, profile, table_spec
 from tiny_run import tiny_table1, write_motion
 
@@ -234,7 +234,7 @@ _KILL_SCRIPT = textwrap.dedent("""
     import json, sys, time
     sys.path[:0] = [{root!r}, {tests!r}]
     from benchmark import runner
-    from benchmark.results import derive_table
+    from benchmark.table_derive import derive_table
     from benchmark.writers import write_table
     from fake_units import FakeExecutor, meta, plan, table_spec
 
@@ -289,7 +289,6 @@ def test_a_full_disk_while_writing_names_the_file(tmp_path, monkeypatch, capsys)
     """ENOSPC in the middle of writing the tables: one line naming the file and the fix."""
     import errno
 
-    import benchmark.results as results
     from benchmark.cli import main
 
     tiny_table1(monkeypatch)
@@ -301,7 +300,7 @@ def test_a_full_disk_while_writing_names_the_file(tmp_path, monkeypatch, capsys)
             raise OSError(errno.ENOSPC, "No space left on device")
         return real_fsync(fd)
 
-    monkeypatch.setattr(results.os, "fsync", full)
+    monkeypatch.setattr(os, "fsync", full)
     rc = main(["run", "table1", "--prior", "no-prior", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and err == (f"error: {tmp_path / 'o' / 'table1.md'}: No space left on device; free some space or "

@@ -7,7 +7,9 @@ import logging
 import pytest
 
 from benchmark import runner
-from benchmark.results import derive_table, load_unit_results, unit_path
+from benchmark.backends import BACKENDS
+from benchmark.table_derive import derive_table
+from benchmark.work_units import load_unit_results, unit_path
 from fake_units import FakeExecutor, meta, plan, table_spec
 
 
@@ -122,7 +124,7 @@ def test_backend_seam_accepts_out_of_order_completion(tmp_path, monkeypatch):
         for unit in reversed(list(units)):
             on_done(unit, execute(unit), None)
 
-    monkeypatch.setitem(runner.BACKENDS, "reversed", reversed_backend)
+    monkeypatch.setitem(BACKENDS, "reversed", reversed_backend)
     units = plan(priors=["p"])
     ex = FakeExecutor()
     report = runner.run_units(units, ex, tmp_path, backend="reversed", progress=False)

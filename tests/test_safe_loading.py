@@ -161,85 +161,25 @@ def test_an_unreadable_file_is_not_called_unsafe(tmp_path):
 
 
 # -- each prior's loaders ----------------------------------------------------------------------
-def _vposer_official(f):
-    from priors.vposer.checkpoint import load_vposer_checkpoint
-    from priors.vposer.model import VPoser
+def _load(prior: str, size: str, **kw):
+    """The prior's ``checkpoint.load(path, size)``."""
+    import importlib
 
-    return load_vposer_checkpoint(f, VPoser(hidden=16, latent=4))
-
-
-def _vposer_project_config(f):
-    from priors.vposer.checkpoint import read_project_config
-
-    return read_project_config(f)
-
-
-def _vposer_torch_load_cpu(f):
-    from priors.vposer.checkpoint import torch_load_cpu
-
-    return torch_load_cpu(f)
-
-
-def _fg_project(f):
-    from priors.frequency_guided.checkpoint import load_project_checkpoint
-
-    return load_project_checkpoint(f)
-
-
-def _hmvae_official(f):
-    from priors.hmvae.checkpoint import load_official_vae
-
-    return load_official_vae(f)
-
-
-def _hmvae_project(f):
-    from priors.hmvae.checkpoint import load_project_vae
-
-    return load_project_vae(f)
-
-
-def _hmvae_project_trajectory(f):
-    from priors.hmvae.checkpoint import load_project_trajectory
-
-    return load_project_trajectory(f)
-
-
-def _motion_dvae_project(f):
-    from priors.motion_dvae.checkpoint import read_project_checkpoint
-
-    return read_project_checkpoint(f)
-
-
-def _motion_dvae_official(f):
-    from priors.motion_dvae.checkpoint import load_official
-
-    return load_official(f, model=torch.nn.Linear(1, 1))
-
-
-def _structured_latent(f):
-    from priors.structured_latent.checkpoint import load_checkpoint
-
-    return load_checkpoint(f)
-
-
-def _sequential_primitives(f):
-    from priors.sequential_primitives.checkpoint import read_checkpoint
-
-    return read_checkpoint(f)
+    return lambda f: importlib.import_module(f"priors.{prior}.checkpoint").load(f, size, **kw)
 
 
 LOADERS = {
-    "vposer official (.ckpt)": (_vposer_official, "V02_05_epoch=13_val_loss=0.03.ckpt"),
-    "vposer project config": (_vposer_project_config, "vposer.pt"),
-    "vposer torch_load_cpu": (_vposer_torch_load_cpu, "TR00_E096.pt"),
-    "frequency-guided project": (_fg_project, "frequency_guided.pt"),
-    "hmvae official": (_hmvae_official, "gen_00250000.pt"),
-    "hmvae project": (_hmvae_project, "hmvae.pt"),
-    "hmvae project trajectory": (_hmvae_project_trajectory, "hmvae_trajectory.pt"),
-    "motion-dvae project": (_motion_dvae_project, "motion_dvae.pt"),
-    "motion-dvae official": (_motion_dvae_official, "official.pt"),
-    "structured-latent": (_structured_latent, "structured_latent.pt"),
-    "sequential-primitives": (_sequential_primitives, "sequential_primitives.pt"),
+    "vposer official (.ckpt)": (_load("vposer", "paper"), "V02_05_epoch=13_val_loss=0.03.ckpt"),
+    "vposer project": (_load("vposer", "embedded"), "vposer.pt"),
+    "frequency-guided official pair": (lambda f: _load("frequency_guided", "paper")(f"{f},{f}"), "TR00_E096.pt"),
+    "frequency-guided project": (_load("frequency_guided", "embedded"), "frequency_guided.pt"),
+    "hmvae official": (_load("hmvae", "paper"), "gen_00250000.pt"),
+    "hmvae project": (_load("hmvae", "embedded"), "hmvae.pt"),
+    "hmvae project trajectory": (lambda f: _load("hmvae", "embedded", trajectory=True)(f"{f},{f}"), "hmvae_trajectory.pt"),
+    "motion-dvae project": (_load("motion_dvae", "embedded"), "motion_dvae.pt"),
+    "motion-dvae official": (_load("motion_dvae", "paper"), "official.pt"),
+    "structured-latent": (_load("structured_latent", "embedded"), "structured_latent.pt"),
+    "sequential-primitives": (_load("sequential_primitives", "embedded"), "sequential_primitives.pt"),
 }
 
 
@@ -253,7 +193,7 @@ def test_every_checkpoint_loader_refuses_a_payload(tmp_path, marker, name):
 
 
 def test_frequency_guided_official_pair_refuses_a_payload_in_either_file(tmp_path, marker):
-    from priors.frequency_guided.checkpoint import load_paper_weights
+    from priors.frequency_guided import checkpoint
 
     plain = tmp_path / "ok" / "pretrained_priorD.pth"
     plain.parent.mkdir()
@@ -261,7 +201,7 @@ def test_frequency_guided_official_pair_refuses_a_payload_in_either_file(tmp_pat
     evil = evil_checkpoint(tmp_path / "evil" / "TR00_E096.pt", marker, payload="builtins.exec")
     for pair in (f"{plain},{evil}", f"{evil},{plain}"):
         with pytest.raises(UnsafeFileError) as err:
-            load_paper_weights(pair, network=None)  # refused before the network is touched
+            checkpoint.load(pair, "paper")  # refused before the network is built
         assert_refused(err.value, evil, marker, "builtins.exec")
 
 

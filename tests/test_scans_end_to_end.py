@@ -116,7 +116,7 @@ def test_data_option_strings():
         scan_data_spec(None, "z", None)
     with pytest.raises(ValueError, match="unknown option 'colour=red'"):
         parse_scan_data("scans=/d?colour=red")
-    from benchmark.protocols.table_run import load_motions
+    from benchmark.table_data import load_motions
 
     with pytest.raises(ValueError, match="completion protocol"):
         load_motions("scans=/d", 4.0)

@@ -6,22 +6,22 @@ import pytest
 import roma
 import torch
 
+from benchmark.frames import sixd_columns_to_matrix as gram_schmidt, yaw_matrix
+from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 from priors.base import FitBatch
-from benchmark.frames import yaw_matrix
 from priors.sequential_primitives import SequentialPrimitivesPrior
 from priors.sequential_primitives.model import (
     EMBEDDED_CONFIG,
     MODEL_JOINTS,
     SequentialPrimitives,
     canonicalise,
-    gram_schmidt,
 )
 from priors.sequential_primitives.train import WindowBank, primitives_loss, train_sequential_primitives
 
 TINY = dict(EMBEDDED_CONFIG, latent=16, d_model=32, heads=2, enc_layers=1, dec_layers=1, ff=64, mlp_hidden=32,
             mlp_layers=2, seg_layers=1, time_freqs=4, point_hidden=[16])
-REST = torch.tensor(training.SMPL_LIKE_REST_JOINTS)
+REST = torch.tensor(SMPL_LIKE_REST_JOINTS)
 
 
 def toy_windows(n=6, frames=60, seed=0):

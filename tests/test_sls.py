@@ -11,9 +11,9 @@ import torch
 from benchmark.catalog import get_profile, load_table_spec
 from benchmark.motion import Motion
 from benchmark.protocols import sls
-from benchmark.results import grid_cells, plan_units
+from benchmark.work_units import grid_cells, plan_units
 from benchmark.rotations import axis_angle_to_matrix
-from priors.base import Decoded, PriorAdapter, WindowSpec
+from priors.base import AnchorDecoder, Decoded, PriorAdapter, WindowSpec
 
 PERIOD = 0.8
 # loss_vertices 1000: the subset the heading search builds anyway (one farthest-point sample per body)
@@ -187,7 +187,7 @@ def test_run_unit_gives_finite_metrics(prior, source, cycle_motions, anny_body):
     spec = tiny_spec()
     unit = _unit(spec, prior, "f5", ids)
     r = sls.run_unit(unit, spec, TINY_PROFILE, make_adapter(prior), anny_body, source, "cpu")
-    from benchmark.results import validate_unit_result
+    from benchmark.work_units import validate_unit_result
 
     validate_unit_result(r, unit)
     row = r["per_sequence"][0]
@@ -218,7 +218,7 @@ def test_fit_is_deterministic(source, cycle_motions, anny_body):
     assert all(torch.equal(x, y) for x, y in zip(pa, pb))
 
 
-class AnchorPrior(PriorAdapter):
+class AnchorPrior(AnchorDecoder, PriorAdapter):
     """A toy anchor decoder: per-anchor 6D poses and a learnt time step (the decode_anchors path)."""
 
     name = "toy-anchors"
@@ -268,10 +268,9 @@ def test_anchor_decoder_path_fits_timestamps(source, cycle_motions, anny_body):
     # the free heading and offset sit on top of the decoded anchors
     assert torch.allclose(trans.detach(), state.offset.detach()[:, None].expand(1, 100, 3))
 
-    class Odd(AnchorPrior):
+    class Odd(PriorAdapter):  # the same prior without the AnchorDecoder interface
         window = WindowSpec(kind="anchors-only")
-
-        decode_anchors = None
+        init_latents, decode, prior_term = AnchorPrior.init_latents, AnchorPrior.decode, AnchorPrior.prior_term
 
     assert "decode_anchors" in sls.na_reason(spec, Odd())
 

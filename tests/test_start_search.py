@@ -13,7 +13,8 @@ import torch
 
 from benchmark.motion import Motion
 from benchmark.observations import make_scans
-from benchmark.protocols.completion import fit, init_state, observation_batch
+from benchmark.protocols.completion import fit, observation_batch
+from benchmark.protocols.fit_state import init_state
 from benchmark.protocols.start_search import (LIMB_START_STAGES, START_SEARCH_RULES, _best_per_frame, encoded_start,
                                                 limb_hypotheses, limb_start_search, prior_free_start,
                                                 supports_encoded_start, supports_start_search)

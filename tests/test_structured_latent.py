@@ -14,11 +14,12 @@ from benchmark.motion import Motion
 from benchmark.synthetic import cycles as cyc
 from priors.base import FitBatch
 from priors.structured_latent import (
-    GradNorm, PAPER_CHUM_CONFIG, PAPER_CONFIG, StructuredLatentCVAE, StructuredLatentPrior, load_checkpoint,
-    train_structured_latent,
+    GradNorm, PAPER_CHUM_CONFIG, PAPER_CONFIG, StructuredLatentCVAE, StructuredLatentPrior, train_structured_latent,
 )
+from priors.structured_latent import checkpoint
 from priors.structured_latent import representation as rep
-from priors.structured_latent.train import CHECKPOINT_NAME, build_anchor_data
+from priors.structured_latent.checkpoint import CHECKPOINT_NAME
+from priors.structured_latent.train import build_anchor_data
 
 TINY = {"latent": 8, "shape_dim": 6, "channels": 8, "hidden": 16}
 
@@ -238,9 +239,9 @@ def test_encode_motion_gives_posterior_means():
 # -- training and checkpoints ------------------------------------------------------------------------
 def test_tiny_training_decreases_the_loss_and_round_trips_the_checkpoint(tmp_path):
     motions = [_gait_motion(freq=f, duration=3.0, speed=s, seed=i) for i, (f, s) in enumerate([(1.0, 1.0), (1.4, 2.0), (0.9, 0.6)])]
-    data = build_anchor_data(motions, windows_s=(2.0,), window_stride_s=0.5)
+    data = build_anchor_data(motions, find_cycles=cyc.find_cycles, windows_s=(2.0,), window_stride_s=0.5)
     assert data["counts"]["cycles"] > 0 and data["counts"]["windows"] > 0
-    model, record = train_structured_latent(tmp_path, steps=60, data=data, val_data=build_anchor_data(motions[:1]),
+    model, record = train_structured_latent(tmp_path, steps=60, data=data, val_data=build_anchor_data(motions[:1], find_cycles=cyc.find_cycles),
                                             config=TINY, log_every=10, phase2_fraction=0.25, batch1=8, batch2=8)
     h1 = record["phase1"]["history"]
     assert h1[-1]["loss"] < h1[0]["loss"] and h1[-1]["pose"] < h1[0]["pose"]
@@ -259,11 +260,11 @@ def test_tiny_training_decreases_the_loss_and_round_trips_the_checkpoint(tmp_pat
     bad["state_dict"].pop("enc_mu.weight")
     torch.save(bad, tmp_path / "missing.pt")
     with pytest.raises(KeyError, match="enc_mu.weight"):
-        load_checkpoint(tmp_path / "missing.pt")
+        checkpoint.load(tmp_path / "missing.pt")
     bad["state_dict"] = {**ckpt["state_dict"], "extra.weight": torch.zeros(1)}
     torch.save(bad, tmp_path / "extra.pt")
     with pytest.raises(ValueError, match="extra.weight"):
-        load_checkpoint(tmp_path / "extra.pt")
+        checkpoint.load(tmp_path / "extra.pt")
     with pytest.raises(FileExistsError, match="--force"):
         StructuredLatentPrior.train_embedded(out_dir=tmp_path)
 

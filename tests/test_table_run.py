@@ -3,7 +3,8 @@
 import torch
 
 from benchmark.motion import Motion
-from benchmark.protocols.table_run import load_motions, select_sequences
+from benchmark.table_data import load_motions
+from benchmark.work_units import select_sequences
 
 
 class _Body:

@@ -18,7 +18,7 @@ import pytest
 from benchmark.catalog import get_profile, load_table_spec
 from benchmark.cli_run import default_priors
 from benchmark.protocols.table_run import run_table
-from benchmark.results import metric_specs
+from benchmark.work_units import metric_specs
 from goldens import check_or_update
 
 ROOT = Path(__file__).resolve().parents[1]

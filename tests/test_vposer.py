@@ -11,10 +11,12 @@ import roma
 import torch
 import torch.nn.functional as F
 
+from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 from priors.base import FitBatch
 from priors.vposer import VPoserSlerp
-from priors.vposer.checkpoint import DEFAULT_WEIGHTS, load_vposer_checkpoint, resolve_checkpoint
+from priors.vposer import checkpoint
+from priors.vposer.checkpoint import DEFAULT_WEIGHTS, resolve_checkpoint
 from priors.vposer.model import ContinousRotReprDecoder, VPoser
 from priors.vposer.train import train_vposer
 
@@ -125,9 +127,8 @@ def test_loader_round_trip_picks_highest_epoch_and_lists_ignored(tmp_path, caplo
     folder = _write_official_folder(tmp_path, {8: m8, 13: m13})
     file, why = resolve_checkpoint(folder)
     assert file.name == "V02_05_epoch=13_val_loss=0.03.ckpt" and "highest epoch (13)" in why
-    loaded = VPoser()
     with caplog.at_level("INFO", logger="priors.vposer"):
-        report = load_vposer_checkpoint(folder, loaded)
+        loaded, report = checkpoint.load(folder, "paper")
     assert report.format == "official-lightning" and report.file == file
     assert report.loaded == sorted(PAPER_KEYS_26)
     assert {"bm_train.v_template", "bm_train.shapedirs", "bm_train.f"} <= set(report.ignored)
@@ -171,9 +172,8 @@ def test_loader_without_num_batches_tracked_and_with_unimportable_hparams(tmp_pa
     finally:
         for n in fakes:
             del sys.modules[n]
-    loaded = VPoser()
     with caplog.at_level("WARNING", logger="priors.vposer"):
-        report = load_vposer_checkpoint(f, loaded)
+        loaded, report = checkpoint.load(f, "paper")
     assert "weights_only=True" in caplog.text and "omegaconf.dictconfig.DictConfig" in caplog.text  # read as stand-ins
     assert "pytorch_lightning.callbacks.model_checkpoint.ModelCheckpoint" in caplog.text
     assert "<top level>/hyper_parameters" in report.ignored and "<top level>/callbacks" in report.ignored
@@ -188,7 +188,7 @@ def test_loader_errors_name_file_key_and_shapes(tmp_path):
     f_missing = tmp_path / "missing.ckpt"
     torch.save(missing, f_missing)
     with pytest.raises(KeyError) as err:
-        load_vposer_checkpoint(f_missing, VPoser())
+        checkpoint.load(f_missing, "paper")
     assert str(f_missing) in str(err.value) and "vp_model.decoder_net.5.weight" in str(err.value)
     assert "(126, 512)" in str(err.value)
 
@@ -197,13 +197,18 @@ def test_loader_errors_name_file_key_and_shapes(tmp_path):
     f_wrong = tmp_path / "wrong.ckpt"
     torch.save(wrong, f_wrong)
     with pytest.raises(ValueError) as err:
-        load_vposer_checkpoint(f_wrong, VPoser())
+        checkpoint.load(f_wrong, "paper")
     msg = str(err.value)
     assert str(f_wrong) in msg and "vp_model.encoder_net.8.mu.weight" in msg and "(16, 512)" in msg and "(32, 512)" in msg
 
-    # a paper-size checkpoint into a smaller network is a shape error too
+    # paper-size tensors in a project file whose config says a smaller network: a shape error too
+    small = tmp_path / "vposer.pt"
+    torch.save({"state_dict": model.state_dict(), "config": {"hidden": 256, "latent": 32}}, small)
     with pytest.raises(ValueError, match="encoder_net"):
-        load_vposer_checkpoint(_write_official_folder(tmp_path, {13: model}), VPoser(hidden=256))
+        checkpoint.load(small, "embedded")
+    # the official release read as the embedded size: pointed to size 'paper'
+    with pytest.raises(ValueError, match="size='paper'"):
+        checkpoint.load(_write_official_folder(tmp_path, {13: model}), "embedded")
 
     empty = tmp_path / "empty"
     empty.mkdir()
@@ -309,7 +314,7 @@ def test_embedded_weights_load_decode_and_reconstruct():
 
 # -- training --------------------------------------------------------------------------------
 def test_tiny_training_run_decreases_the_loss_and_writes_outputs(tmp_path, monkeypatch):
-    skel = torch.tensor(training.SMPL_LIKE_REST_JOINTS)
+    skel = torch.tensor(SMPL_LIKE_REST_JOINTS)
     monkeypatch.setattr(training, "fixed_rest_skeleton", lambda: (skel, "test skeleton"))
     g = torch.Generator().manual_seed(0)
     base = torch.randn(8, 22, 3, generator=g) * 0.4  # a few "poses" plus noise: learnable structure

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from benchmark.catalog import load_table_spec
-from benchmark.results import derive_table
+from benchmark.table_derive import derive_table
 from benchmark.writers import format_csv, format_latex, format_markdown, metric_label, write_table
 from fake_units import FakeExecutor, meta, plan, table_spec
 

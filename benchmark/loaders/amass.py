@@ -31,14 +31,12 @@ import numpy as np
 import torch
 import yaml
 
+from benchmark.frames import Z_UP_TO_Y_UP
 from benchmark.motion import Motion
 from benchmark.plausibility import check_motion
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 FRAME_RATE_TABLE = Path(__file__).with_name("frame_rates.yaml")
-
-# Fixed z-up -> y-up rotation: -90 degrees about x, (x, y, z) -> (x, z, -y).
-Z_UP_TO_Y_UP = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
 
 _RATE_KEYS = ("mocap_framerate", "mocap_frame_rate")
 _BODY_BY_WIDTH = {156: "smplh", 165: "smplx", 72: "smpl", 66: None}

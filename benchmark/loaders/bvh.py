@@ -1,5 +1,5 @@
 """BVH motion files -> :class:`Motion` on the SMPL 22-joint skeleton (the file format itself, parser
-and a small writer, is :mod:`benchmark.loaders.bvh_format`; re-exported here).
+and a small writer, is :mod:`benchmark.loaders.bvh_format`).
 
 Defaults are tuned to the CMU motion-capture database in its widely used 31-joint BVH conversion
 (Hips, LHipJoint, LeftUpLeg, ..., LeftHandIndex1, LThumb, ...), and every CMU specific is a
@@ -51,12 +51,10 @@ from typing import Mapping
 import numpy as np
 import torch
 
-from benchmark.loaders.bvh_format import (  # re-exported: the file format lives in benchmark.loaders.bvh_format
+from benchmark.loaders.bvh_format import (
     BVHData,
     BVHSkeleton,
-    cmu_skeleton,
     parse_bvh,
-    write_bvh,
 )
 from benchmark.motion import Motion
 from benchmark.plausibility import MIN_MOTION_FRAMES, check_motion
@@ -68,18 +66,13 @@ from benchmark.rotations import (
 from benchmark.skeleton import JOINT_INDEX, JOINT_NAMES, PARENTS
 
 __all__ = [
-    "BVHData",
-    "BVHSkeleton",
     "CMU_JOINT_MAP",
     "CMU_UNIT_M",
     "END",
     "JointSource",
     "Retarget",
-    "cmu_skeleton",
     "load_bvh",
-    "parse_bvh",
     "retarget_to_smpl",
-    "write_bvh",
 ]
 
 CMU_UNIT_M = 0.0254 / 0.45  # one CMU length unit (1/0.45 inch) in metres = 0.056444...

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmark.motion import Motion
+from benchmark.motion import Motion, shape_for_body
 
 
 def detect_format(path) -> str:
@@ -93,8 +93,6 @@ def convert(input_path, out_path, fps: float | None = None, overwrite: bool = Fa
                   what="the folder of --out")
     motion = load_motion(input_path, fps=fps)
     if body is not None:
-        from benchmark.protocols.table_run import _shape_for_body
-
-        motion = _shape_for_body(motion, body, str(input_path))
+        motion = shape_for_body(motion, body, str(input_path))
     motion.save(out_path)
     return motion

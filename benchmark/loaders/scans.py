@@ -15,7 +15,7 @@ file in the folder, or ``fps`` (frame i at i / fps seconds).
 
 Meshes (a PLY/OBJ with faces) contribute their vertices as the frame's points, unless ``sample``
 is given: then ``sample`` points are drawn uniformly over each mesh's surface area
-(:func:`benchmark.observations.sample_surface`). Point clouds always contribute their points.
+(:func:`benchmark.surface_sampling.sample_surface`). Point clouds always contribute their points.
 Units are taken as they are in the files: the project expects metres, y up.
 
 Plausibility (:mod:`benchmark.plausibility`, thresholds there): timestamps must give 1-1,000 fps
@@ -36,9 +36,10 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from benchmark.observations import PointCloudSequence, sample_surface
+from benchmark.observations import PointCloudSequence
 from benchmark.plausibility import (check_scan_coordinates, check_scan_frame_size, check_scan_points,
                                     check_timestamps)
+from benchmark.surface_sampling import sample_surface
 
 log = logging.getLogger(__name__)
 

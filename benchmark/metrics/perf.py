@@ -16,7 +16,7 @@ from benchmark.metrics.chamfer import DEFAULT_MAX_TILE_ELEMENTS, chamfer_loss
 PERF_BACKENDS = ("kdtree", "tiled", "naive")
 
 
-def _synthetic_pair(frames: int, n_points: int, n_vertices: int, device: torch.device, seed: int):
+def synthetic_pair(frames: int, n_points: int, n_vertices: int, device: torch.device, seed: int):
     """Body-sized point clouds: ``a`` (frames, n_vertices, 3) requiring grad (the mesh vertices) and
     ``b`` (frames, n_points, 3) near the same surface (the observed points), metres."""
     gen = torch.Generator().manual_seed(seed)
@@ -77,7 +77,7 @@ def chamfer_perf(frames: int = 8, n_points: int = 10000, n_vertices: int = 13718
         if not isinstance(value, int) or value < 1:
             raise ValueError(f"chamfer_perf: `{name}` must be a positive int; got {value!r}.")
     dev = torch.device(device)
-    a, b = _synthetic_pair(frames, n_points, n_vertices, dev, seed)
+    a, b = synthetic_pair(frames, n_points, n_vertices, dev, seed)
     slow = min(brute_force_frames, frames)
     timed = {"kdtree": frames, "tiled": frames if dev.type == "cuda" else slow, "naive": slow}
 

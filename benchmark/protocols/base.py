@@ -66,19 +66,10 @@ class Protocol:
 
     def unit_cost(self, unit, spec: dict, profile: dict) -> float:
         """A unit's relative cost, for longest-first ordering (default:
-        :func:`benchmark.backends.estimate_cost`)."""
-        from benchmark.backends import estimate_cost
+        :func:`benchmark.work_units.estimate_cost`)."""
+        from benchmark.work_units import estimate_cost
 
         return estimate_cost(unit)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"
-
-
-def na_result(unit, reason: str) -> dict:
-    """The result of a unit that a prior cannot serve: no numbers, the reason in the JSON."""
-    return {
-        "unit_id": unit.unit_id, "spec_hash": unit.spec_hash, "prior": unit.prior, "cell": dict(unit.cell),
-        "sequence_ids": list(unit.sequence_ids), "fingerprint": "n/a", "per_sequence": [],
-        "timings": {"fit_s": 0.0, "eval_s": 0.0}, "device": "none", "na_reason": reason,
-    }

@@ -30,14 +30,8 @@ import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.observations import PointCloudSequence
-from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, HEADING_CANDIDATES, LATENT_INITS,  # noqa: F401
-                                             LOG_EVERY, FitState, _check_decoded, _data_term, _grid, _initial_heading,
-                                             _repeat_batch, _rigid_parameters, _set_yaw, _subset_batch, apply_free_rigid,
-                                             body_parameters, frame_chamfer, init_state, initial_latents, optimise,
-                                             parameter_groups)
-from benchmark.protocols.facing import (FACING_CACHE_SIZE, FACING_HYPOTHESES, FACING_RULES, FACING_STEPS,  # noqa: F401
-                                         _FACING_CACHE, _facing_key, _mean_heading, _select, facing_search,
-                                         observation_facing, observed_facing)
+from benchmark.protocols.facing import FACING_RULES, facing_search, observed_facing
+from benchmark.protocols.fit_state import FitState, body_parameters, init_state, optimise, parameter_groups
 from benchmark.protocols.start_search import (START_SEARCH_RULES, encoded_start, is_prior_free, limb_start_search,
                                               prior_free_start)
 from priors.base import FitBatch, PriorAdapter

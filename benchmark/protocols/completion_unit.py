@@ -22,7 +22,7 @@ from benchmark.observations import make_scans
 from benchmark.protocols.completion import decode_output, fit, observation_batch
 from benchmark.protocols.unit_data import UnitData
 from benchmark.surface_sampling import sample_surface
-from benchmark.table_data import stable_seed
+from benchmark.work_units import stable_seed
 
 log = logging.getLogger(__name__)
 
@@ -404,7 +404,7 @@ def unit_arrays(unit, data: UnitData, batch, rot, trans, shape, gt_pose) -> dict
                       batch.points, batch.lengths)
 
 
-# -- the protocol-module interface (benchmark.protocols.table_run.PROTOCOL_MODULES) ----------------
+# -- the protocol interface (benchmark.protocols.base.Protocol; wrapped by benchmark.protocols.builtin) --
 def make_source(spec: dict, body, motions_by_id: dict, seed: int):
     from benchmark.protocols.scan_completion import ScanCompletionData, is_scan_source
 

@@ -43,13 +43,12 @@ import torch
 from benchmark.degrade import fingerprint
 from benchmark.metrics.pose import mean_acceleration, mpjpe
 from benchmark.observations import NoisyJoints, make_noisy_joints, virtual_marker_indices
-from benchmark.protocols.base import na_result
 from benchmark.protocols.motion_fit import (
     MotionSource, MotionTargets, Timer, decode_parameters, fit_motion, init_motion_state,
     is_interpolation_baseline, joints_of, load_table_motions, objective_value, unit_result, v2v_sums,
 )
-from benchmark.table_data import stable_seed
-from priors.base import has_motion_encoder
+from benchmark.work_units import na_result, stable_seed
+from priors.base import MotionDenoiser, has_motion_encoder
 
 MODES = ("regression", "optimisation")
 NO_REGRESSION = ("regression needs one forward pass: the prior has neither denoise_motion nor an encoder "
@@ -103,7 +102,7 @@ class DenoiseSource(MotionSource):
         return self.cached(("obs_v2v", tuple(ids), float(sigma)), build)
 
 
-# -- the protocol-module interface (benchmark.protocols.table_run.PROTOCOL_MODULES) ----------------
+# -- the protocol interface (benchmark.protocols.base.Protocol; wrapped by benchmark.protocols.builtin) --
 def load_motions(spec: dict, data, body) -> dict:
     return load_table_motions(spec, data, body)
 
@@ -121,7 +120,7 @@ def na_reason(spec: dict, adapter) -> str | None:
 
 def mode_na_reason(adapter, mode: str) -> str | None:
     """Why a prior cannot serve a mode (None when it can)."""
-    if mode == "regression" and not callable(getattr(adapter, "denoise_motion", None)) and not has_motion_encoder(adapter):
+    if mode == "regression" and not isinstance(adapter, MotionDenoiser) and not has_motion_encoder(adapter):
         return NO_REGRESSION
     return None
 
@@ -166,11 +165,10 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: DenoiseSour
     g = torch.Generator().manual_seed(unit.seed)
     timer = Timer(device)
     info: dict = {"history": []}
-    denoiser = getattr(adapter, "denoise_motion", None)
-    if callable(denoiser):
+    if isinstance(adapter, MotionDenoiser):
         method = f"denoise_motion(mode={mode!r})"
         with timer:
-            res = denoiser(rotations=noisy_rot, trans=obs_trans, timestamps=clean.timestamps, mode=mode,
+            res = adapter.denoise_motion(rotations=noisy_rot, trans=obs_trans, timestamps=clean.timestamps, mode=mode,
                            iterations=0 if mode == "regression" else steps)
         rot, trans = _as_motion(res, obs_trans, adapter.name, B, T)
     elif mode == "regression":

@@ -1,5 +1,5 @@
-"""How a completion fit finds the facing direction (split from :mod:`benchmark.protocols.completion`,
-which re-exports it): the coarse multi-hypothesis facing search, the facing found on the observation
+"""How a completion fit finds the facing direction (split from :mod:`benchmark.protocols.completion`):
+the coarse multi-hypothesis facing search, the facing found on the observation
 by the prior-free body (table1 protocol v2), cached per observation, and every prior's start turned to it."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.observations import PointCloudSequence
-from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, _data_term, _repeat_batch,
-                                             _rigid_parameters, _set_yaw, _subset_batch, body_parameters, init_state,
-                                             optimise)
+from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, init_state,
+                                             optimise, repeat_batch, rigid_parameters, set_yaw, subset_batch,
+                                             subset_data_term)
 from priors.base import FitBatch, PriorAdapter
 
 
@@ -45,7 +45,7 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
     """
     B = batch.batch_size
     K = FACING_HYPOTHESES
-    small = _subset_batch(_repeat_batch(batch, K), FACING_POINTS)
+    small = subset_batch(repeat_batch(batch, K), FACING_POINTS)
     hyp = init_state(adapter, body, small, generator, device, search_heading=False, latent_init=latent_init)
     if hyp.root is None and hyp.heading is None:
         return init_state(adapter, body, batch, generator, device, search_heading=False, latent_init=latent_init), {
@@ -54,20 +54,20 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
     with torch.no_grad():
         base_root = None if hyp.root is None else hyp.root.detach().clone()
         base_heading = None if hyp.heading is None else hyp.heading.detach().clone()
-        _set_yaw(hyp, base_root, base_heading, yaw)
+        set_yaw(hyp, base_root, base_heading, yaw)
     subset = body.loss_vertex_indices(FACING_VERTICES)
     chamfer = StaticChamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1))
 
     def loss_of(step):
-        data = _data_term(hyp, body, small, subset, chamfer)
+        data = subset_data_term(hyp, body, small, subset, chamfer)
         prior = adapter.prior_term(hyp.latents)
         return (data + lambda_prior * prior).sum(), lambda: {}
 
     rigid_steps, all_steps = FACING_STEPS
-    optimise(adapter.name, _rigid_parameters(hyp), rigid_steps, lr, 1.0, loss_of)
+    optimise(adapter.name, rigid_parameters(hyp), rigid_steps, lr, 1.0, loss_of)
     optimise(adapter.name, hyp.parameters(), all_steps, lr, 1.0, loss_of)
     with torch.no_grad():
-        scores = _data_term(hyp, body, small, subset, chamfer).view(B, K)
+        scores = subset_data_term(hyp, body, small, subset, chamfer).view(B, K)
     best = scores.argmin(1)  # (B,)
     pick = torch.arange(B, device=device) * K + best
     # the adapter's own per-batch state (e.g. the initial latents its prior term measures from)
@@ -78,7 +78,7 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
                    "facing_scores_mm": [[round(float(v), 3) for v in row] for row in scores]}
 
 
-def _mean_heading(state: FitState, batch: FitBatch) -> torch.Tensor:
+def mean_heading(state: FitState, batch: FitBatch) -> torch.Tensor:
     """(B,) circular mean over the observed frames of the heading (yaw of the root's +z axis about +y) of ``state``."""
     from benchmark.frames import heading
 
@@ -93,7 +93,7 @@ _FACING_CACHE: OrderedDict = OrderedDict()
 FACING_CACHE_SIZE = 16
 
 
-def _facing_key(body, batch: FitBatch, device, lr: float, lambda_prior: float) -> tuple:
+def facing_key(body, batch: FitBatch, device, lr: float, lambda_prior: float) -> tuple:
     """What :func:`observation_facing`'s result depends on: the observation's content (its
     :func:`~benchmark.degrade.fingerprint`), the body, the device, the objective and the search's sizes."""
     from benchmark.degrade import fingerprint
@@ -117,14 +117,14 @@ def observation_facing(body, batch: FitBatch, generator: torch.Generator, device
     served again, bit for bit, to the next prior fitted to the same observation."""
     from priors.no_prior import NoPrior
 
-    key = _facing_key(body, batch, device, lr, lambda_prior)
+    key = facing_key(body, batch, device, lr, lambda_prior)
     hit = _FACING_CACHE.get(key)
     if hit is not None and hit[0] is body:
         _FACING_CACHE.move_to_end(key)
         return hit[1].clone(), copy.deepcopy(hit[2])
     with torch.enable_grad():
         ref, log = facing_search(NoPrior(device=device), body, batch, generator, device, lr, lambda_prior)
-    yaw = _mean_heading(ref, batch)
+    yaw = mean_heading(ref, batch)
     _FACING_CACHE[key] = (body, yaw.clone(), copy.deepcopy(log))
     while len(_FACING_CACHE) > FACING_CACHE_SIZE:
         _FACING_CACHE.popitem(last=False)
@@ -148,11 +148,11 @@ def observed_facing(adapter: PriorAdapter, body, batch: FitBatch, generator: tor
     if state.root is None and state.heading is None:
         return state, {"facing": "none: the prior has no free root orientation or heading"}
     with torch.no_grad():
-        start = _mean_heading(state, batch)
+        start = mean_heading(state, batch)
         delta = torch.remainder(target - start + math.pi, 2 * math.pi) - math.pi
         base_root = None if state.root is None else state.root.detach().clone()
         base_heading = None if state.heading is None else state.heading.detach().clone()
-        _set_yaw(state, base_root, base_heading, delta)
+        set_yaw(state, base_root, base_heading, delta)
     return state, {"facing_yaw_rad": [round(float(y), 5) for y in target],
                    "facing_scores_mm": log["facing_scores_mm"], "facing_turn_rad": [round(float(d), 5) for d in delta]}
 

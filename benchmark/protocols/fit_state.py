@@ -1,5 +1,5 @@
 """The state of a completion fit and the pieces every fit and search shares (split from
-:mod:`benchmark.protocols.completion`, which re-exports them): the optimised variables
+:mod:`benchmark.protocols.completion`): the optimised variables
 (:class:`FitState`), body parameters at any time, the initial state, the optimiser, and the
 data term on subsets used by the coarse searches (facing, limb start)."""
 
@@ -39,7 +39,7 @@ class FitState:
         return params
 
 
-def _grid(adapter: PriorAdapter, window_s: float, B: int, device) -> torch.Tensor:
+def decode_grid(adapter: PriorAdapter, window_s: float, B: int, device) -> torch.Tensor:
     """The decoder's own frame grid for fixed-window priors, covering the window."""
     w = adapter.window
     per_window = w.frames
@@ -61,7 +61,7 @@ def body_parameters(state: FitState, timestamps: torch.Tensor, observed: bool = 
         rot = dec.rotations if observed else slerp_frames(dec.rotations, state.obs_t, timestamps)
         trans = None if dec.trans is None else (dec.trans if observed else lerp_frames(dec.trans, state.obs_t, timestamps))
     elif kind == "fixed":
-        grid = _grid(a, state.window_s, timestamps.shape[0], timestamps.device)
+        grid = decode_grid(a, state.window_s, timestamps.shape[0], timestamps.device)
         dec = a.decode(state.latents, grid, shape)
         rot = slerp_frames(dec.rotations, grid, timestamps)
         trans = None if dec.trans is None else lerp_frames(dec.trans, grid, timestamps)
@@ -184,16 +184,16 @@ def _initial_heading(state: FitState, body, batch: FitBatch, data_term: StaticCh
     scores = []
     for k in range(HEADING_CANDIDATES):
         yaw = 2 * math.pi * k / HEADING_CANDIDATES
-        _set_yaw(state, base_root, base_heading, torch.full((B,), yaw, device=batch.points.device))
+        set_yaw(state, base_root, base_heading, torch.full((B,), yaw, device=batch.points.device))
         rot, trans = body_parameters(state, batch.timestamps, observed=True)
         verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices
         d = data_term(verts.flatten(0, 1))
         scores.append(d.view(B, n).mean(1))
     best = torch.stack(scores, 1).argmin(1).to(batch.points.dtype)  # (B,)
-    _set_yaw(state, base_root, base_heading, 2 * math.pi * best / HEADING_CANDIDATES)
+    set_yaw(state, base_root, base_heading, 2 * math.pi * best / HEADING_CANDIDATES)
 
 
-def _set_yaw(state: FitState, base_root, base_heading, yaw: torch.Tensor) -> None:
+def set_yaw(state: FitState, base_root, base_heading, yaw: torch.Tensor) -> None:
     if state.heading is not None:
         state.heading.copy_(base_heading + yaw[:, None])
         return
@@ -248,21 +248,21 @@ FACING_POINTS = 256  # observed points per frame the hypotheses are scored on
 FACING_VERTICES = 400  # mesh vertices (farthest-point subset) the hypotheses are scored on
 
 
-def _subset_batch(batch: FitBatch, points: int) -> FitBatch:
+def subset_batch(batch: FitBatch, points: int) -> FitBatch:
     """The first ``points`` observed points of every frame (i.i.d. uniform samples: an unbiased subset)."""
     m = min(points, batch.points.shape[2])
     return FitBatch(points=batch.points[:, :, :m], lengths=batch.lengths.clamp_max(m), timestamps=batch.timestamps,
                     window_s=batch.window_s, output_timestamps=batch.output_timestamps)
 
 
-def _repeat_batch(batch: FitBatch, k: int) -> FitBatch:
+def repeat_batch(batch: FitBatch, k: int) -> FitBatch:
     """Every sequence of ``batch`` repeated ``k`` times, hypothesis-major per sequence (b0h0, b0h1, ...)."""
     rep = lambda x: x.repeat_interleave(k, dim=0)  # noqa: E731
     return FitBatch(points=rep(batch.points), lengths=rep(batch.lengths), timestamps=rep(batch.timestamps),
                     window_s=batch.window_s, output_timestamps=rep(batch.output_timestamps))
 
 
-def _rigid_parameters(state: FitState) -> list[torch.Tensor]:
+def rigid_parameters(state: FitState) -> list[torch.Tensor]:
     return [p for p in (state.root, state.trans, state.heading, state.offset) if p is not None]
 
 
@@ -276,7 +276,7 @@ def frame_chamfer(state: FitState, body, batch: FitBatch, subset, chamfer: Stati
     return chamfer(verts.flatten(0, 1)).view(B, n)
 
 
-def _data_term(state: FitState, body, batch: FitBatch, subset, chamfer: StaticChamfer) -> torch.Tensor:
+def subset_data_term(state: FitState, body, batch: FitBatch, subset, chamfer: StaticChamfer) -> torch.Tensor:
     """(B,) the protocol's data term (mm): :func:`frame_chamfer`, mean over the observed frames."""
     return frame_chamfer(state, body, batch, subset, chamfer).mean(1) * 1000.0
 

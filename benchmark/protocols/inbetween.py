@@ -65,7 +65,7 @@ def observed_frames(context: int, gap: int, total: int) -> tuple[list[int], int]
     return list(range(context)) + [key], key
 
 
-# -- the protocol-module interface (benchmark.protocols.table_run.PROTOCOL_MODULES) ----------------
+# -- the protocol interface (benchmark.protocols.base.Protocol; wrapped by benchmark.protocols.builtin) --
 def load_motions(spec: dict, data, body) -> dict:
     return load_table_motions(spec, data, body)
 

@@ -46,9 +46,10 @@ from dataclasses import dataclass, field
 import roma
 import torch
 
+from benchmark.motion_posing import body_float
 from benchmark.protocols.fit_state import FitState, body_parameters, init_state, optimise, set_rigid
 from benchmark.skeleton import NUM_JOINTS
-from priors.base import FitBatch, has_motion_encoder
+from priors.base import FitBatch, InterpolationBaseline, has_motion_encoder
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +61,9 @@ MM2 = 1e6  # m^2 -> mm^2
 # --------------------------------------------------------------------------------------------
 
 def is_interpolation_baseline(adapter) -> bool:
-    """The SLERP baseline (priors/slerp.py): latents are the observation, no optimisation."""
-    return bool(getattr(adapter, "interpolation_baseline", False))
+    """The SLERP baseline (priors/slerp.py, an :class:`~priors.base.InterpolationBaseline`): latents
+    are the observation, no optimisation."""
+    return isinstance(adapter, InterpolationBaseline)
 
 
 def device_name(device) -> str:
@@ -80,13 +82,6 @@ def device_name(device) -> str:
 def synchronize(device) -> None:
     if str(device).startswith("cuda") and torch.cuda.is_available():
         torch.cuda.synchronize(torch.device(str(device)))
-
-
-def body_float(body) -> tuple[torch.dtype, torch.device]:
-    for buf in body.buffers():
-        if buf.is_floating_point():
-            return buf.dtype, buf.device
-    return torch.float32, body.faces.device
 
 
 # --------------------------------------------------------------------------------------------
@@ -428,7 +423,7 @@ class Timer:
 
 
 def unit_result(unit, fingerprint: str, per_sequence: list, fit_s: float, eval_s: float, device, **extra) -> dict:
-    """The unit-result dict of benchmark.results (plus ``device_name`` and any extra fields)."""
+    """The unit-result dict of benchmark.work_units (plus ``device_name`` and any extra fields)."""
     for sid, row in zip(unit.sequence_ids, per_sequence):
         row["id"] = sid
         row["sums"] = {k: float(v) for k, v in row["sums"].items()}

@@ -50,7 +50,7 @@ def root_path_errors(joints: torch.Tensor, gt_joints: torch.Tensor) -> tuple[lis
     return err.tolist(), travel.tolist()
 
 
-# -- the protocol-module interface (benchmark.protocols.table_run.PROTOCOL_MODULES) ----------------
+# -- the protocol interface (benchmark.protocols.base.Protocol; wrapped by benchmark.protocols.builtin) --
 def load_motions(spec: dict, data, body) -> dict:
     windows = [float(w) for w in (spec.get("grid") or {}).get("window", [])]
     return load_table_motions(spec, data, body, longest_window_s=max(windows) if windows else None)

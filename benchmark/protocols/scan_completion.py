@@ -115,7 +115,7 @@ class ScanCompletionData:
 
     def unit_data(self, sequence_ids: list[str]):
         from benchmark.protocols.unit_data import UnitData
-        from benchmark.table_data import stable_seed
+        from benchmark.work_units import stable_seed
 
         key = tuple(sequence_ids)
         if key in self._cache:

@@ -18,7 +18,7 @@ Data (:func:`load_motions`, :class:`SlsData`)
     kept). Its id is ``<motion id>#c<k>``.
     Ground truth at the anchors: the posed mesh and joints, the 16 landmarks (the vertices
     ``body.landmark_indices``, :data:`benchmark.skeleton.LANDMARK_NAMES`) and two independent dense
-    scans of ``data.points_per_scan`` points (:func:`benchmark.observations.sample_surface`): the
+    scans of ``data.points_per_scan`` points (:func:`benchmark.surface_sampling.sample_surface`): the
     *input scan* (what the observation is cut from) and the *evaluation scan* (what the metric is
     measured against), so the metric never rewards fitting the particular input sample. Every
     random draw is seeded per sequence from (table seed, sequence id): a sequence's data does not
@@ -119,9 +119,9 @@ from benchmark.protocols.fit_state import (FitState, apply_free_rigid, body_para
 from benchmark.protocols.unit_data import UnitData
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from benchmark.surface_sampling import sample_surface
-from benchmark.table_data import stable_seed
+from benchmark.work_units import stable_seed
 from benchmark.unit_arrays import ground_truth_pose
-from priors.base import FitBatch, PriorAdapter
+from priors.base import AnchorDecoder, FitBatch, PriorAdapter
 
 log = logging.getLogger(__name__)
 
@@ -378,7 +378,8 @@ def observe(data: SlsUnitData, spec: dict, code: str, seed: int, ids: list[str])
 
 # ============================================================================ decoding
 def uses_anchor_decoder(adapter) -> bool:
-    return callable(getattr(adapter, "decode_anchors", None))
+    """Whether the adapter decodes its anchors itself (an :class:`~priors.base.AnchorDecoder`)."""
+    return isinstance(adapter, AnchorDecoder)
 
 
 def _rigid(state: FitState, rot: torch.Tensor, trans: torch.Tensor | None, timestamps: torch.Tensor):
@@ -547,10 +548,10 @@ def make_source(spec: dict, body, motions_by_id: dict, seed: int) -> SlsData:
 
 
 def na_reason(spec: dict, adapter) -> str | None:
-    kind = getattr(getattr(adapter, "window", None), "kind", None)
+    kind = adapter.window.kind
     if uses_anchor_decoder(adapter) or kind in KNOWN_KINDS:
         return None
-    return (f"prior {getattr(adapter, 'name', '?')!r} has window kind {kind!r} and no decode_anchors: the sls protocol "
+    return (f"prior {adapter.name!r} has window kind {kind!r} and no decode_anchors: the sls protocol "
             f"decodes anchors through decode_anchors or completion.body_parameters ({', '.join(KNOWN_KINDS)})")
 
 

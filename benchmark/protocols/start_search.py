@@ -17,10 +17,9 @@ import roma
 import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
-from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitBatch, FitState, _repeat_batch,
-                                              _rigid_parameters, _subset_batch, body_parameters, frame_chamfer,
-                                              optimise, set_rigid)
-from priors.base import PriorAdapter, has_motion_encoder
+from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, frame_chamfer,
+                                              optimise, repeat_batch, rigid_parameters, set_rigid, subset_batch)
+from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encoder
 
 # objective.start_search: "none"; "limbs" (table1 protocol v4): :func:`limb_start_search` for the
 # per-frame priors; "observation" (v5): the same, and every other prior with a motion encoder starts
@@ -43,7 +42,7 @@ def supports_start_search(adapter: PriorAdapter) -> bool:
     """Whether ``limb_start_search`` applies: a per-frame prior (one latent set per observed frame)
     that can express a given pose in its latents (``encode_motion``: exact for no-prior, the
     encoder's mean for VPoser)."""
-    return adapter.window.kind == "per-frame" and type(adapter).encode_motion is not PriorAdapter.encode_motion
+    return adapter.window.kind == "per-frame" and isinstance(adapter, MotionEncoder)
 
 
 def limb_hypotheses(adapter: PriorAdapter, state: FitState, stage: int) -> list[dict] | None:
@@ -108,7 +107,7 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
     lowest mean."""
     K = len(hyps)
     B, n = batch.batch_size, batch.num_observed
-    small = _subset_batch(_repeat_batch(batch, K), FACING_POINTS)
+    small = subset_batch(repeat_batch(batch, K), FACING_POINTS)
 
     def rep(x):
         return None if x is None else x.detach().repeat_interleave(K, dim=0).clone().requires_grad_(True)
@@ -128,7 +127,7 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
         return (frame_terms().mean(1) + lambda_prior * adapter.prior_term(hyp.latents)).sum(), lambda: {}
 
     rigid_steps, all_steps = START_SEARCH_STEPS
-    optimise(adapter.name, _rigid_parameters(hyp), rigid_steps, lr, 1.0, loss_of)
+    optimise(adapter.name, rigid_parameters(hyp), rigid_steps, lr, 1.0, loss_of)
     optimise(adapter.name, hyp.parameters(), all_steps, lr, 1.0, loss_of)
     with torch.no_grad():
         scores = frame_terms().view(B, K, n)
@@ -186,10 +185,10 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
     Deterministic (the prior-free body draws nothing from ``generator``); kept per process for the
     last START_CACHE_SIZE observations and served again as a fresh copy. Returns the state and the
     search's log."""
-    from benchmark.protocols.facing import _facing_key, observed_facing
+    from benchmark.protocols.facing import facing_key, observed_facing
     from priors.no_prior import NoPrior
 
-    key = ("start", *_facing_key(body, batch, device, lr, lambda_prior), repr(LIMB_START_STAGES), START_SEARCH_STEPS)
+    key = ("start", *facing_key(body, batch, device, lr, lambda_prior), repr(LIMB_START_STAGES), START_SEARCH_STEPS)
     hit = _START_CACHE.get(key)
     if hit is None or hit[0] is not body:
         ref_prior = NoPrior(device=device)

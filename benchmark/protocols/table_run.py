@@ -76,14 +76,14 @@ class TableExecutor:
         adapter = self.adapters[unit.prior]
         reason = self.protocol.na_reason(self.spec, adapter)
         if reason:
-            from benchmark.protocols.base import na_result
+            from benchmark.work_units import na_result
 
             return na_result(unit, reason)
         return self.protocol.run_unit(unit, self.spec, self.profile, adapter, self.body, self.source, self.device)
 
     def unit_cost(self, unit) -> float:
         """Relative cost of a unit (for longest-first ordering): the protocol's ``unit_cost``
-        (default :func:`benchmark.backends.estimate_cost`)."""
+        (default :func:`benchmark.work_units.estimate_cost`)."""
         return float(self.protocol.unit_cost(unit, self.spec, self.profile))
 
 
@@ -95,9 +95,9 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     never changes a number."""
     from benchmark.backends import make_backend
     from benchmark.registry import make_adapter, weights_content_sha256
-    from benchmark.results import derive_table, plan_units
     from benchmark.runner import run_units
-    from benchmark.table_data import select_sequences
+    from benchmark.table_derive import derive_table
+    from benchmark.work_units import plan_units, select_sequences
     from benchmark.writers import format_markdown, write_table
 
     protocol = table_protocol(spec)
@@ -123,8 +123,7 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
         # the content of every weights file the adapter read (embedded or given): new weights under
         # the same file name invalidate stored results
         prior_info[name] = {"size": size, "weights": w, "weights_sha256": _sha_file(w),
-                            "embedded_sha256": getattr(adapters[name], "weights_sha256", None)
-                            or weights_content_sha256(adapters[name])}
+                            "embedded_sha256": weights_content_sha256(adapters[name])}
 
     # the content of the motion data each sequence id stands for enters its units' spec hash
     data_hashes = {sid: motion_sha256(motions[sid]) for sid in ids}

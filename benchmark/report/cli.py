@@ -13,10 +13,10 @@ REPORT_ENTRIES = ("index.html", "img")
 def _is_table_file(path: Path) -> bool:
     import json
 
-    from benchmark.report.run_folder import _is_table
+    from benchmark.report.run_folder import is_table
 
     try:
-        return _is_table(json.loads(path.read_text(encoding="utf-8")))
+        return is_table(json.loads(path.read_text(encoding="utf-8")))
     except (OSError, ValueError):
         return False
 

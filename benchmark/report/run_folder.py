@@ -7,7 +7,7 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmark.results import canonical_json, si_metric
+from benchmark.work_units import canonical_json, si_metric
 from benchmark.unit_arrays import arrays_path
 
 log = logging.getLogger(__name__)
@@ -16,7 +16,7 @@ log = logging.getLogger(__name__)
 @dataclass
 class RunFolder:
     root: Path
-    tables: list  # table JSONs (benchmark.results.derive_table), sorted by name
+    tables: list  # table JSONs (benchmark.table_derive.derive_table), sorted by name
     units: dict = field(default_factory=dict)  # table name -> (prior, cell key) -> [unit JSON, ...] (plan order)
     skipped: list = field(default_factory=list)  # (path, why) of files that could not be read
 
@@ -31,7 +31,7 @@ def cell_key(cell: dict) -> str:
     return canonical_json({k: v for k, v in cell.items()})
 
 
-def _is_table(obj) -> bool:
+def is_table(obj) -> bool:
     return isinstance(obj, dict) and {"table", "rows", "grid", "metrics"} <= set(obj)
 
 
@@ -54,7 +54,7 @@ def load_run(path) -> RunFolder:
         except (OSError, ValueError) as exc:
             skipped.append((f, f"unreadable JSON ({exc})"))
             continue
-        if _is_table(obj):
+        if is_table(obj):
             obj["_file"] = f.name  # several tables (or profiles of one) may share a folder
             tables.append(obj)
     if not tables:

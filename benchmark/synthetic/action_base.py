@@ -16,7 +16,7 @@ import torch
 from benchmark.synthetic.curves import deg
 from benchmark.synthetic.posing import PoseBuilder, mirror_pose
 
-_DTYPE = torch.float64
+DTYPE = torch.float64
 TWO_PI = 2 * math.pi
 
 
@@ -36,7 +36,7 @@ class ActionInput:
         if self.rest_joints is None:
             from benchmark.synthetic.rest import CANONICAL_JOINTS
 
-            return torch.tensor(CANONICAL_JOINTS, dtype=_DTYPE)
+            return torch.tensor(CANONICAL_JOINTS, dtype=DTYPE)
         return self.rest_joints
 
     @property
@@ -64,11 +64,11 @@ class Action:
 
     def airborne(self, x: ActionInput) -> torch.Tensor:
         """(T,) 1.0 where the action wants ballistic flight, else 0.0."""
-        return torch.zeros(x.n, dtype=_DTYPE)
+        return torch.zeros(x.n, dtype=DTYPE)
 
     def heading_rate(self, x: ActionInput) -> torch.Tensor:
         """(T,) rad/s, positive turns the facing direction toward the body's left (+x)."""
-        return torch.zeros(x.n, dtype=_DTYPE)
+        return torch.zeros(x.n, dtype=DTYPE)
 
     def evaluate(self, x: ActionInput) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(rotations (T, 22, 3, 3), airborne (T,), heading rate (T,)), mirrored if params say so."""
@@ -84,13 +84,13 @@ class Action:
 # ---------------------------------------------------------------------------------------- helpers
 
 
-def _relaxed_arms(pb: PoseBuilder, style, abd=None, swing=0.0) -> None:
+def relaxed_arms(pb: PoseBuilder, style, abd=None, swing=0.0) -> None:
     abd = deg(9.0) if abd is None else abd
     for side, sgn in (("left", 1.0), ("right", -1.0)):
         pb.arm(side, flex=sgn * swing, abd=abd, twist=deg(5.0), elbow=style.elbow)
 
 
-def _rng_choice(rng, options, p=None):
+def rng_choice(rng, options, p=None):
     return options[int(rng.choice(len(options), p=p))]
 
 

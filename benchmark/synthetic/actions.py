@@ -24,16 +24,15 @@ import math
 
 import torch
 
-from benchmark.synthetic.action_base import _DTYPE, TWO_PI, Action, ActionInput, _rng_choice
+from benchmark.synthetic.action_base import DTYPE, TWO_PI, Action, rng_choice
 from benchmark.synthetic.curves import KeyframeCurve, deg, smootherstep, window
 from benchmark.synthetic.gaits import Idle, Jog, Run, Skip, Turn, Walk, WalkBackward, WalkCurved
 from benchmark.synthetic.posing import PoseBuilder
 
-# The base class and the gaits live in benchmark.synthetic.action_base and benchmark.synthetic.gaits;
-# they are re-exported here, with the registry.
+# The base class lives in benchmark.synthetic.action_base, the gaits in benchmark.synthetic.gaits;
+# this module holds the other actions and the registry of all of them (ACTIONS, get_action).
 __all__ = [
-    "ACTIONS", "TWO_PI", "Action", "ActionInput", "Boxing", "Cartwheel", "Idle", "Jog", "Jump", "JumpingJacks",
-    "Kick", "Reach", "Run", "Sidestep", "Skip", "Squat", "Turn", "Walk", "WalkBackward", "WalkCurved", "Wave",
+    "ACTIONS", "Boxing", "Cartwheel", "Jump", "JumpingJacks", "Kick", "Reach", "Sidestep", "Squat", "Wave",
     "get_action",
 ]
 
@@ -119,7 +118,7 @@ class JumpingJacks(Action):
 
     def airborne(self, x):
         q = torch.remainder(x.phase, 0.5)
-        return (q >= 0.32).to(_DTYPE)
+        return (q >= 0.32).to(DTYPE)
 
 
 class Squat(Action):
@@ -193,7 +192,7 @@ class Jump(Action):
 
     def airborne(self, x):
         p = torch.remainder(x.phase, 1.0)
-        return ((p >= self._flight[0]) & (p < self._flight[1])).to(_DTYPE)
+        return ((p >= self._flight[0]) & (p < self._flight[1])).to(DTYPE)
 
 
 # ---------------------------------------------------------------------------------------- fighting
@@ -234,7 +233,7 @@ class Boxing(Action):
         while t < duration + 0.5:
             n = int(rng.integers(1, 5))
             for _ in range(n):
-                kind = _rng_choice(rng, names, p=[0.3, 0.25, 0.15, 0.12, 0.09, 0.09])
+                kind = rng_choice(rng, names, p=[0.3, 0.25, 0.15, 0.12, 0.09, 0.09])
                 arm, _, _, dur = _PUNCHES[kind]
                 dur = dur / style.tempo
                 start = max(t, last_end[arm] + 0.02)
@@ -251,10 +250,10 @@ class Boxing(Action):
         st = x.style
         pb = PoseBuilder(x.n)
         bounce = torch.sin(TWO_PI * x.phase)
-        twist = torch.zeros(x.n, dtype=_DTYPE)
-        arms = {k: [deg(torch.full((x.n,), v, dtype=_DTYPE)) for v in g] for k, g in _GUARD.items()}
+        twist = torch.zeros(x.n, dtype=DTYPE)
+        arms = {k: [deg(torch.full((x.n,), v, dtype=DTYPE)) for v in g] for k, g in _GUARD.items()}
         weights = _event_weights(x.time, x.params.get("events", []), _PUNCH_PROFILE)
-        dip = torch.zeros(x.n, dtype=_DTYPE)
+        dip = torch.zeros(x.n, dtype=DTYPE)
         for ev, w in zip(x.params.get("events", []), weights):
             arm, target, tw, _ = _PUNCHES[ev["kind"]]
             w = w * st.energy
@@ -321,7 +320,7 @@ class Kick(Action):
     def sample_params(self, rng, style, duration):
         events, t = [], float(rng.uniform(0.2, 0.6))
         while t < duration + 0.5:
-            kind = _rng_choice(rng, list(_KICKS), p=[0.45, 0.25, 0.3])
+            kind = rng_choice(rng, list(_KICKS), p=[0.45, 0.25, 0.3])
             dur = float(rng.uniform(0.9, 1.3)) / style.tempo
             events.append({"kind": kind, "start": round(t, 4), "duration": round(dur, 4),
                            "leg": "left" if rng.random() < 0.5 else "right",
@@ -335,13 +334,13 @@ class Kick(Action):
     def pose(self, x):
         st = x.style
         n = x.n
-        z = torch.zeros(n, dtype=_DTYPE)
+        z = torch.zeros(n, dtype=DTYPE)
         legs = {s: {"flex": deg(8.0) + z, "abd": st.step_width + deg(5.0) + z, "twist": z.clone(),
                     "knee": deg(16.0) + deg(3.0) * torch.sin(TWO_PI * x.phase), "toe": z.clone()} for s in ("left", "right")}
         root = {"pitch": deg(4.0) + z, "roll": z.clone(), "yaw": z.clone()}
         for ev in x.params.get("events", []):
             u = (x.time - ev["start"]) / ev["duration"]
-            inside = ((u > 0) & (u < 1)).to(_DTYPE)
+            inside = ((u > 0) & (u < 1)).to(DTYPE)
             uc = u.clamp(0, 1)
             cv = _KICK_CURVES[ev["kind"]]
             side = ev["leg"]
@@ -421,7 +420,7 @@ class Reach(Action):
     def pose(self, x):
         st = x.style
         n = x.n
-        z = torch.zeros(n, dtype=_DTYPE)
+        z = torch.zeros(n, dtype=DTYPE)
         arm = {s: {"flex": z.clone(), "abd": deg(9.0) + z, "elbow": st.elbow + z} for s in ("left", "right")}
         bend = z.clone()
         profile = KeyframeCurve([(0, 0), (0.35, 1), (0.65, 1), (1, 0)])

@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from benchmark.interpolate import lerp_frames, slerp_frames
+from benchmark.interpolate import resample_intervals
 from benchmark.motion import Motion
 from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
@@ -295,30 +295,6 @@ def find_cycles(motion: Motion, *, min_s: float = MIN_CYCLE_S, max_s: float = MA
     return detect_cycles(motion, min_s=min_s, max_s=max_s)
 
 
-# ----------------------------------------------------------------------------------- resampling
-def resample_intervals(motion: Motion, intervals, anchors: int = ANCHORS) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Each [start, end] of ``intervals`` (K, 2) resampled to ``anchors`` instants uniformly in time.
-
-    Returns local rotations (K, anchors, 22, 3, 3), translation (K, anchors, 3) (float32, SLERP /
-    LERP between the motion's frames, clamped at its ends) and the anchor times relative to each
-    interval's start (K, anchors) float64, 0 .. end - start.
-    """
-    iv = torch.as_tensor(intervals, dtype=torch.float64).reshape(-1, 2)
-    K = iv.shape[0]
-    if K == 0:
-        return torch.zeros(0, anchors, 22, 3, 3), torch.zeros(0, anchors, 3), torch.zeros(0, anchors, dtype=torch.float64)
-    if anchors < 2:
-        raise ValueError(f"anchors must be >= 2, got {anchors}")
-    u = torch.linspace(0.0, 1.0, anchors, dtype=torch.float64)
-    rel = (iv[:, 1:] - iv[:, :1]) * u  # (K, n)
-    dst = (iv[:, :1] + rel).reshape(1, -1)
-    src = motion.timestamps.to(torch.float64)[None]
-    R = axis_angle_to_matrix(motion.poses.to(torch.float64))[None]
-    rot = slerp_frames(R, src, dst)[0].reshape(K, anchors, 22, 3, 3)
-    trans = lerp_frames(motion.trans.to(torch.float64)[None], src, dst)[0].reshape(K, anchors, 3)
-    return rot.float(), trans.float(), rel
-
-
 def cycle_windows(motions, *, anchors: int = ANCHORS, min_s: float = MIN_CYCLE_S, max_s: float = MAX_CYCLE_S,
                   actions=None, gait_starts=GAIT_STARTS, method: str = "auto", max_per_motion: int | None = None,
                   max_cycles: int | None = None, seed: int = 0) -> list[Motion]:
@@ -360,6 +336,5 @@ def cycle_windows(motions, *, anchors: int = ANCHORS, min_s: float = MIN_CYCLE_S
 
 __all__ = [
     "ANCHORS", "MIN_CYCLE_S", "MAX_CYCLE_S", "GAIT_STARTS", "EVENT_ACTIONS", "Cycle", "plan_from_meta",
-    "gait_phase_track", "plan_cycles", "hip_flexion", "detect_cycles", "find_cycles", "resample_intervals",
-    "cycle_windows",
+    "gait_phase_track", "plan_cycles", "hip_flexion", "detect_cycles", "find_cycles", "cycle_windows",
 ]

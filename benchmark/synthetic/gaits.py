@@ -9,7 +9,7 @@ import math
 
 import torch
 
-from benchmark.synthetic.action_base import _DTYPE, TWO_PI, Action, _relaxed_arms
+from benchmark.synthetic.action_base import DTYPE, TWO_PI, Action, relaxed_arms
 from benchmark.synthetic.curves import FourierCurve, bump, deg, smootherstep
 from benchmark.synthetic.posing import PoseBuilder
 
@@ -64,9 +64,9 @@ def _stance_twist(phase: torch.Tensor, contact: float, lift: float, turn_per_cyc
 
     def accrued(x):  # heading from contact to contact + x, x in phase units
         S = lambda u: torch.sin(2 * TWO_PI * (u - centre)) / (2 * TWO_PI)  # noqa: E731
-        return turn_per_cycle * (x - (S(contact + x) - S(torch.as_tensor(contact, dtype=_DTYPE))))
+        return turn_per_cycle * (x - (S(contact + x) - S(torch.as_tensor(contact, dtype=DTYPE))))
 
-    total = accrued(torch.as_tensor(stance, dtype=_DTYPE))
+    total = accrued(torch.as_tensor(stance, dtype=DTYPE))
     unwind = total * (1 - smootherstep((q - stance) / (1 - stance)))
     return torch.where(q < stance, accrued(q), unwind)
 
@@ -114,7 +114,7 @@ class Walk(Action):
     def heading_rate(self, x):
         rate = x.params.get("turn_rate", 0.0)
         if rate == 0.0:
-            return torch.zeros(x.n, dtype=_DTYPE)
+            return torch.zeros(x.n, dtype=DTYPE)
         p = -x.phase if x.params.get("direction") == "backward" else x.phase
         return rate * _gait_modulation(p, 0.12)
 
@@ -180,12 +180,12 @@ class Run(Action):
     def airborne(self, x):
         q = torch.remainder(x.phase, 0.5)  # both half-cycles: left then right stance
         a, b = self._flight
-        return ((q >= a) & (q < b)).to(_DTYPE)
+        return ((q >= a) & (q < b)).to(DTYPE)
 
     def heading_rate(self, x):
         rate = x.params.get("turn_rate", 0.0)
         if rate == 0.0:
-            return torch.zeros(x.n, dtype=_DTYPE)
+            return torch.zeros(x.n, dtype=DTYPE)
         return rate * _gait_modulation(x.phase, 0.18)
 
 
@@ -225,7 +225,7 @@ class Skip(Action):
 
     def airborne(self, x):
         q = torch.remainder(x.phase, 0.5)
-        return ((q >= 0.17) & (q < 0.36)).to(_DTYPE)
+        return ((q >= 0.17) & (q < 0.36)).to(DTYPE)
 
 
 class Turn(Action):
@@ -250,7 +250,7 @@ class Turn(Action):
             lift = bump(q, 0.78, 0.08)
             pb.leg(side, flex=deg(3.0) + deg(28.0) * lift, abd=deg(1.5) + st.step_width, knee=deg(5.0) + deg(50.0) * lift,
                    dorsi=deg(8.0) * lift, level=True)
-        _relaxed_arms(pb, st)
+        relaxed_arms(pb, st)
         pb.spine(flex=st.lean, twist=0.08 * x.params.get("turn_rate", 0.0))
         pb.head(twist=0.15 * x.params.get("turn_rate", 0.0))
         return pb.rot
@@ -283,5 +283,5 @@ class Idle(Action):
             pb.leg(side, abd=st.step_width + deg(2.0) + sgn * roll, knee=deg(3.0), level=True, plant=True)
         pb.spine(flex=st.lean + deg(1.0) * torch.sin(TWO_PI * 3 * p), bend=-roll)
         pb.head(twist=x.params.get("look", 0.0) * torch.sin(TWO_PI * 0.5 * p), flex=deg(3.0))
-        _relaxed_arms(pb, st, swing=deg(2.0) * torch.sin(TWO_PI * p))
+        relaxed_arms(pb, st, swing=deg(2.0) * torch.sin(TWO_PI * p))
         return pb.rot

@@ -80,26 +80,27 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
                   body=None, overwrite: bool = False, table_capture: int | None = None,
                   table_spec: dict | None = None) -> list[Path]:
     """Write the scan set (module docstring); ``sequences``: a count (the same deterministic selection
-    as ``run``'s profiles: :func:`benchmark.protocols.table_run.select_sequences`) or a list of ids.
+    as ``run``'s profiles: :func:`benchmark.work_units.select_sequences`) or a list of ids.
 
     ``table_capture=SEED``: write, for each sequence, the very capture ``run table1 --seed SEED``
     synthesises for a one-sequence work unit (table1's capture rate, points per frame, scan noise
     and capture seed; ``fps``, ``points``, ``noise_mm``, ``holes`` and ``duration`` are ignored), so
     that ``run table1 --data scans=OUT`` sees the same observations as the synthetic run (the
-    check of the scan path; smoke units hold one sequence). ``table_spec``: another table1-like spec
-    than ``benchmark/tables/table1.yaml`` for that (tests use shorter windows).
+    check of the scan path; smoke units hold one sequence). ``table_spec``: the spec of table1 for that
+    (``data make-scans`` loads ``benchmark/tables/table1.yaml``; tests use shorter windows).
     """
     from benchmark.loaders.scans import UNITS, Z_UP_TO_Y_UP
     from benchmark.observations import make_scans
     from benchmark.outdir import check_not_overlapping, claim_out_dir, remove_entries, write_marker
-    from benchmark.protocols.completion_unit import stable_seed
-    from benchmark.protocols.table_run import select_sequences
     from benchmark.synthetic.splits import build_split, cache_dir
+    from benchmark.work_units import select_sequences, stable_seed
 
     # every argument is checked before anything in `out` is touched; then only an earlier
     # make-scans output is replaced (its marker lists it; benchmark.outdir.claim_out_dir)
     if not 0.0 <= holes < 1.0:
         raise ValueError(f"holes must be a fraction in [0, 1), got {holes}")
+    if table_capture is not None and table_spec is None:
+        raise ValueError("table_capture: give table_spec, table1's spec (benchmark.catalog.load_table_spec('table1'))")
     if units not in UNITS or up not in ("y", "z"):
         raise ValueError(f"units must be one of {list(UNITS)} and up one of y, z; got {units!r}, {up!r}")
     for name, value, ok, rule in (("fps", fps, fps > 0, "> 0"), ("points", points, points >= 1, ">= 1"),
@@ -128,9 +129,7 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
         raise ValueError(f"sequences: an id is given twice ({[n for n in names if names.count(n) > 1][0]})")
     sampled = int(round(points / (1.0 - holes)))
     if table_capture is not None:
-        from benchmark.catalog import load_table_spec
-
-        d = (table_spec or load_table_spec("table1"))["data"]
+        d = table_spec["data"]
         if float(d.get("window_start_s", 0.0)):
             raise ValueError("table_capture: table1's window_start_s is not 0; not supported")
         fps, sampled, noise_mm, holes, duration = (float(d["capture_fps"]), int(d["points_per_frame"]),
@@ -168,40 +167,3 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
         written.append(folder)
         log.info("wrote %s: %d frames", folder, scans.num_frames)
     return written
-
-
-def add_make_scans_command(dsub) -> None:
-    """Registers ``data make-scans`` on the ``data`` command's sub-parsers."""
-    import argparse
-
-    from benchmark import argtypes as at
-
-    c = dsub.add_parser("make-scans", help="write captured-like scan folders (PLY + timestamps) from the synthetic test split",
-                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    c.add_argument("--out", required=True, help="output folder, one sub-folder per sequence")
-    c.add_argument("--sequences", type=at.positive_int, default=4, help="how many test sequences (the profiles' selection)")
-    c.add_argument("--ids", nargs="+", default=None, help="explicit test sequence ids instead of --sequences")
-    c.add_argument("--fps", type=at.fps, default=60.0, help="capture rate")
-    c.add_argument("--points", type=at.points, default=10000, help="points per frame (after the holes)")
-    c.add_argument("--noise-mm", type=at.Number(float, 0.0, 1000.0, unit="mm"), default=3.0, help="Gaussian noise per axis, mm")
-    c.add_argument("--holes", type=at.fraction, default=0.1, help="fraction of each frame's surface cut away")
-    c.add_argument("--duration", type=at.positive_float, default=4.0,
-                   help="seconds per sequence (at most the sequences' length, 4.4 s)")
-    c.add_argument("--seed", type=at.seed, default=0)
-    c.add_argument("--up", choices=["y", "z"], default="y", help="up axis to write")
-    c.add_argument("--units", choices=["m", "cm", "mm"], default="m", help="units to write")
-    c.add_argument("--table-capture", type=at.seed, default=None, metavar="SEED",
-                   help="write the capture `run table1 --seed SEED` synthesises (its rate, points and seeds; "
-                        "no noise, no holes): the scan path's check against the synthetic run")
-    c.add_argument("--force", action="store_true",
-                   help="replace the output of an earlier make-scans in --out (a folder holding anything else is refused)")
-    c.set_defaults(func=_cmd_make_scans)
-
-
-def _cmd_make_scans(args) -> int:
-    written = make_scan_set(args.out, sequences=args.ids if args.ids is not None else args.sequences, fps=args.fps, points=args.points,
-                            noise_mm=args.noise_mm, holes=args.holes, duration=args.duration, seed=args.seed,
-                            up=args.up, units=args.units, overwrite=args.force,
-                            table_capture=args.table_capture)
-    print(f"wrote {len(written)} scan sequences to {args.out}: {', '.join(p.name for p in written)}")
-    return 0

@@ -13,7 +13,7 @@ from priors.base import (
     Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionEncoder, PaperNetwork, PriorAdapter, Trainable, WindowSpec,
 )
 from priors.frequency_guided import checkpoint
-from priors.frequency_guided.model import FPS, FRAMES, FrequencyGuidedNetwork, PAPER_CONFIG, _ExportModule
+from priors.frequency_guided.model import FPS, FRAMES, ExportModule, FrequencyGuidedNetwork, PAPER_CONFIG
 from priors.frequency_guided.checkpoint import DEFAULT_WEIGHTS, WHERE_TO_GET
 from priors.training import embedded_out_dir
 
@@ -134,16 +134,16 @@ class FrequencyGuidedPrior(MotionEncoder, ExportableDecoder, PaperNetwork, Train
 
     def export_decoder(self) -> ExportSpec:
         """z (B, L) -> rotations (B, 128, 22, 3, 3) of one window (heading-normalised root)."""
-        module = _ExportModule(self.network.decoder).eval()
+        module = ExportModule(self.network.decoder).eval()
         g = torch.Generator().manual_seed(0)
         z = torch.randn(2, self.latent_dim, generator=g).to(self.device)
         return ExportSpec(module=module, example_inputs=(z,), input_names=["z"], output_names=["rotations"])
 
     @classmethod
-    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
+    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False, dataset=None) -> dict:
         """``python -m benchmark train frequency-guided``: retrain the embedded weights (train_frequency_guided)."""
         from priors.frequency_guided.train import train_frequency_guided
 
         out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
-        _, record = train_frequency_guided(out, seed=seed, **({"steps": int(steps)} if steps is not None else {}))
+        _, record = train_frequency_guided(out, seed=seed, dataset=dataset, **({"steps": int(steps)} if steps is not None else {}))
         return record

@@ -16,7 +16,7 @@ from torch import nn
 
 from benchmark.body.lbs import forward_kinematics
 from benchmark.frames import heading as heading_angle, yaw_matrix
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
 from priors.vposer.model import NUM_BODY_JOINTS, VPoserV1, sixd_interleaved_to_matrix
 
 
@@ -250,7 +250,7 @@ class FrequencyGuidedDecoder(nn.Module):
         return torch.cat([root[:, :, None], body], dim=2)
 
 
-class _ExportModule(nn.Module):
+class ExportModule(nn.Module):
     def __init__(self, decoder: FrequencyGuidedDecoder):
         super().__init__()
         self.decoder = decoder
@@ -271,8 +271,6 @@ class FrequencyGuidedNetwork(nn.Module):
         self.motion_prior = MotionPrior(**{k: v for k, v in cfg.items() if k != "vposer"})
         self.vposer = VPoserV1(**cfg["vposer"])
         if rest_joints is None:
-            from priors.training import SMPL_LIKE_REST_JOINTS
-
             rest_joints = torch.tensor(SMPL_LIKE_REST_JOINTS, dtype=torch.float32)
         self.register_buffer("rest_joints", torch.as_tensor(rest_joints, dtype=torch.float32).reshape(NUM_JOINTS, 3).clone())
         Fr = self.motion_prior.frames

@@ -137,12 +137,14 @@ def train_frequency_guided(
     loss_frames: int | None = 32,
     log_every: int = 200,
     rest_joints: torch.Tensor | None = None,
+    dataset=None,
 ) -> tuple[FrequencyGuidedNetwork, dict]:
     """Train the embedded prior (VPoser v1, then the motion prior) and write
     ``frequency_guided.pt`` + ``frequency_guided.json`` into ``out_dir`` (None: write nothing).
 
     windows / val_windows: explicit (N, 128, 69) windows (``priors.training.motion_windows`` layout);
-    by default 128-frame windows (stride ``stride``) of the synthetic train / val splits at 30 fps.
+    by default 128-frame windows (stride ``stride``) of the train / val splits of ``dataset`` (the
+    training data the caller hands over: :func:`priors.training.split_motions`) at 30 fps.
     The VPoser v1 stage trains on every 2nd frame of the split's motions (at most 200k poses), or on
     the frames of the explicit windows. rest_joints: the fixed (22, 3) skeleton of the losses and joint
     features (default ``priors.training.fixed_rest_skeleton()``); it is saved with the weights.
@@ -151,16 +153,16 @@ def train_frequency_guided(
     Fr = int(cfg["frames"])
     data_info: dict = {}
     if windows is None:
-        motions = training.load_split_motions("train")
+        motions = training.split_motions(dataset, "train")
         windows = training.motion_windows(motions, Fr, stride, fps=FPS)
         vp_poses = training.pose_frames(motions, every=2, max_frames=200_000, seed=seed)
-        data_info["train"] = {"source": "benchmark.synthetic.splits.build_split('train')", "motions": len(motions),
+        data_info["train"] = {"source": dataset.source("train"), "motions": len(motions),
                               "windows": int(windows.shape[0]), "stride": stride, "fps": FPS,
                               "vposer_poses": int(vp_poses.shape[0]), "vposer_frame_every": 2}
         if val_windows is None:
             try:
-                val_windows = training.motion_windows(training.load_split_motions("val"), Fr, stride, fps=FPS)
-                data_info["val"] = {"source": "benchmark.synthetic.splits.build_split('val')", "windows": int(val_windows.shape[0])}
+                val_windows = training.motion_windows(training.split_motions(dataset, "val"), Fr, stride, fps=FPS)
+                data_info["val"] = {"source": dataset.source("val"), "windows": int(val_windows.shape[0])}
             except Exception as exc:
                 log.warning("no validation split (%s); training without a validation loss", exc)
                 data_info["val"] = {"source": None, "error": f"{type(exc).__name__}: {exc}"}
@@ -250,12 +252,14 @@ def train_frequency_guided(
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.frequency_guided.train --out priors/weights``: train the embedded weights."""
     from benchmark import argtypes as at
+    from benchmark.synthetic.train_data import SyntheticTrainingData
 
     ap = training.recipe_parser("Train the embedded frequency-guided prior on the synthetic training split.",
                                 DEFAULT_WEIGHTS, DEFAULT_STEPS)
     ap.add_argument("--vposer-steps", type=at.positive_int, default=DEFAULT_VPOSER_STEPS, help="VPoser v1 steps (default: %(default)s)")
     args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
-    _, rec = train_frequency_guided(args.out, steps=args.steps, seed=args.seed, vposer_steps=args.vposer_steps)
+    _, rec = train_frequency_guided(args.out, steps=args.steps, seed=args.seed, vposer_steps=args.vposer_steps,
+                                    dataset=SyntheticTrainingData())
     print({k: rec[k] for k in ("train_wall_s", "final_train", "final_val", "checkpoint_bytes")})
 
 

@@ -9,7 +9,7 @@ initialised from N(0, I) as in the authors' completion code. ``decode`` returns 
 rotations of every window on the 30 fps grid, root orientation included; the SMPL-H index joints
 22/23 are dropped (joints 0..21 are used), and a model trained in the AMASS z-up world (official
 weights) has its root orientation (and trajectory) turned into the project's y-up world with
-``benchmark.loaders.amass.Z_UP_TO_Y_UP`` (models trained here are y-up already:
+``benchmark.frames.Z_UP_TO_Y_UP`` (models trained here are y-up already:
 ``config.world_up``). The decoder has no canonical heading, but the protocol still frees a yaw and
 an offset per sequence (``heading_normalised = True``), as for every prior whose decoder fixes the
 root orientation. Prior term: ``|z_l|^2 + |z_g|^2`` summed over every window and dimension
@@ -40,35 +40,26 @@ from __future__ import annotations
 
 import logging
 import math
-from pathlib import Path
 
 import torch
 from torch import nn
 
-from benchmark.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
+from benchmark.frames import Z_UP_TO_Y_UP, matrix_to_sixd_columns, sixd_columns_to_matrix
 from benchmark.interpolate import slerp_frames
-from benchmark.loaders.amass import Z_UP_TO_Y_UP
 from benchmark.skeleton import NUM_JOINTS
-from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
-from priors.hmvae.checkpoint import (
-    load_official_trajectory,
-    load_official_vae,
-    load_project_trajectory,
-    load_project_vae,
-    resolve_paper_weights,
+from priors.base import (
+    Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionEncoder, PaperNetwork, PriorAdapter, Trainable, WindowSpec,
 )
+from priors.hmvae import checkpoint
+from priors.hmvae.checkpoint import DEFAULT_WEIGHTS
 from priors.hmvae.model import PAPER_CONFIG, HMVAE, parameter_summary
 from priors.hmvae.skeleton import NUM_JOINTS24
 from priors.hmvae.trajectory import PAPER_TRAJECTORY_CONFIG, TrajectoryModel, integrate_velocity
-from priors.training import WEIGHTS_DIR
 
 log = logging.getLogger(__name__)
 
 FPS = 30.0
 FRAMES = 64
-VAE_FILE = "hmvae.pt"
-TRAJECTORY_FILE = "hmvae_trajectory.pt"
-TRAIN_COMMAND = "python -m benchmark train hmvae  (or: python -m priors.hmvae.train --out priors/weights)"
 
 
 def num_windows(window_s: float, frames: int = FRAMES, fps: float = FPS) -> int:
@@ -129,7 +120,7 @@ class _SingleWindowExport(nn.Module):
         return self.decode(z_g.unsqueeze(1), z_l.unsqueeze(1))
 
 
-class HMVAEPrior(PriorAdapter):
+class HMVAEPrior(MotionEncoder, ExportableDecoder, PaperNetwork, Trainable, PriorAdapter):
     """HM-VAE with free per-frame translation (module docstring)."""
 
     name = "hmvae"
@@ -140,53 +131,24 @@ class HMVAEPrior(PriorAdapter):
     heading_normalised = True
     joints = tuple(range(NUM_JOINTS))
     shape_conditioned = False
-    has_encoder = True
     sixd_layout = "columns"
     frozen_network = "net"
+    default_weights = DEFAULT_WEIGHTS  # and hmvae_trajectory.pt beside it
     uses_trajectory = False
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=weights, device=device)
-        trajectory = None
-        if size == "paper":
-            files = resolve_paper_weights(weights, need_trajectory=self.uses_trajectory)
-            vae, self.vae_report = load_official_vae(files.vae)
-            if self.uses_trajectory:
-                trajectory, self.trajectory_report = load_official_trajectory(files)
-            self.weights_path = str(files.vae) + (f",{files.trajectory}" if self.uses_trajectory else "")
-        elif size == "embedded":
-            vae_file, traj_file = self._embedded_files(weights)
-            vae, self.vae_report = load_project_vae(vae_file)
-            if self.uses_trajectory:
-                trajectory, self.trajectory_report = load_project_trajectory(traj_file)
-            self.weights_path = str(vae_file) + (f",{traj_file}" if self.uses_trajectory else "")
-        else:
+        if size not in ("embedded", "paper"):
             raise ValueError(f"{self.name}: unknown size {size!r}; expected 'embedded' or 'paper'")
+        if size == "embedded" and weights is None:
+            weights = self.default_weights
+        nets, self.checkpoint = checkpoint.load(weights, size, trajectory=self.uses_trajectory)
+        vae, trajectory = (nets["vae"], nets["trajectory"]) if self.uses_trajectory else (nets, None)
+        self.weights_path = self.checkpoint.weights_path
         if vae.config.seq_len != FRAMES:
             raise ValueError(f"{self.name}: the adapter needs the len-{FRAMES} model, the weights hold len-{vae.config.seq_len}")
         self.net = HMVAEDecode(vae, trajectory)
         self.freeze_network(device)
-
-    # -- weights -------------------------------------------------------------------------------
-    def _embedded_files(self, weights) -> tuple[Path, Path]:
-        if weights is None:
-            vae_file, traj_file = WEIGHTS_DIR / VAE_FILE, WEIGHTS_DIR / TRAJECTORY_FILE
-        else:
-            parts = [s.strip() for s in str(weights).split(",") if s.strip()]
-            first = Path(parts[0]).expanduser()
-            if first.is_dir():
-                vae_file, traj_file = first / VAE_FILE, first / TRAJECTORY_FILE
-            else:
-                vae_file = first
-                traj_file = Path(parts[1]).expanduser() if len(parts) > 1 else first.parent / TRAJECTORY_FILE
-        needed = [vae_file] + ([traj_file] if self.uses_trajectory else [])
-        missing = [str(p) for p in needed if not p.is_file()]
-        if missing:
-            raise FileNotFoundError(
-                f"embedded HM-VAE weights not found: {missing}. Train them with `{TRAIN_COMMAND}` "
-                "(writes hmvae.pt and hmvae_trajectory.pt), or use size='paper' with a checkpoint of the official trainer"
-            )
-        return vae_file, traj_file
 
     # -- introspection -------------------------------------------------------------------------
     @property
@@ -196,10 +158,6 @@ class HMVAEPrior(PriorAdapter):
     @property
     def trajectory_model(self) -> TrajectoryModel | None:
         return self.net.trajectory
-
-    @property
-    def device(self) -> torch.device:
-        return next(self.net.parameters()).device
 
     @property
     def latent_shapes(self) -> dict[str, tuple[int, int]]:
@@ -323,13 +281,13 @@ class HMVAEPrior(PriorAdapter):
         return ExportSpec(module=module, example_inputs=example, input_names=["z_g", "z_l"], output_names=outputs)
 
     @classmethod
-    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
+    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False, dataset=None) -> dict:
         """``python -m benchmark train hmvae``: train the embedded VAE and trajectory model
         (:func:`priors.hmvae.train.train_embedded`; ``steps`` sets the VAE's steps, the trajectory
         model's are scaled in proportion). Writes hmvae.pt/.json and hmvae_trajectory.pt/.json."""
         from priors.hmvae.train import train_embedded
 
-        return train_embedded(out_dir=out_dir, steps=steps, seed=seed, overwrite=overwrite)
+        return train_embedded(out_dir=out_dir, steps=steps, seed=seed, overwrite=overwrite, dataset=dataset)
 
 
 class HMVAETrajectoryPrior(HMVAEPrior):
@@ -351,4 +309,4 @@ class HMVAETrajectoryPrior(HMVAEPrior):
         return {"vae": parameter_summary(net["vae"]), "trajectory": parameter_summary(net["trajectory"])}
 
 
-__all__ = ["HMVAEPrior", "HMVAETrajectoryPrior", "HMVAEDecode", "num_windows", "FPS", "FRAMES", "VAE_FILE", "TRAJECTORY_FILE"]
+__all__ = ["HMVAEPrior", "HMVAETrajectoryPrior", "HMVAEDecode", "num_windows", "FPS", "FRAMES"]

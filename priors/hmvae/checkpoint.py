@@ -205,7 +205,7 @@ def _load_strict(model: nn.Module, sd: dict, file: Path, what: str, frozen_optio
     frozen = frozen_parameter_names(model)
     loaded, _ = load_state_strict(
         model, sd, file, what, optional=frozen if frozen_optional else (), fixed=frozen, fixed_note=FIXED_NOTE,
-        note=f"config {getattr(model, 'config', '')}; is this the right model (VAE vs trajectory, len-64 vs len-8) and size?",
+        note=f"config {model.config}; is this the right model (VAE vs trajectory, len-64 vs len-8) and size?",
     )
     return loaded
 

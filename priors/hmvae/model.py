@@ -51,7 +51,6 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-from benchmark.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
 from priors.hmvae.skeleton import (
     NUM_JOINTS24,
     SkeletonConv,
@@ -308,8 +307,6 @@ __all__ = [
     "Encoder",
     "Decoder",
     "HMVAE",
-    "sixd_columns_to_matrix",
-    "matrix_to_sixd_columns",
     "kl_normal",
     "official_state_dict",
     "parameter_summary",

@@ -122,18 +122,18 @@ def _check_windows(x: torch.Tensor, frames: int, what: str) -> torch.Tensor:
     return x.contiguous()
 
 
-def _split_windows(split: str, frames: int, stride: int) -> tuple[torch.Tensor, dict]:
-    motions = training.load_split_motions(split)
+def _split_windows(dataset, split: str, frames: int, stride: int) -> tuple[torch.Tensor, dict]:
+    motions = training.split_motions(dataset, split)
     w = training.motion_windows(motions, frames, stride, fps=30.0)
-    return w, {"source": f"benchmark.synthetic.splits.build_split({split!r})", "motions": len(motions),
+    return w, {"source": dataset.source(split), "motions": len(motions),
                "window_frames": frames, "stride": stride, "fps": 30.0, "windows": int(w.shape[0])}
 
 
-def _default_data(frames: int, stride: int) -> tuple[torch.Tensor, torch.Tensor | None, dict]:
-    train, info = _split_windows("train", frames, stride)
+def _default_data(dataset, frames: int, stride: int) -> tuple[torch.Tensor, torch.Tensor | None, dict]:
+    train, info = _split_windows(dataset, "train", frames, stride)
     data = {"train": info}
     try:
-        val, vinfo = _split_windows("val", frames, stride)
+        val, vinfo = _split_windows(dataset, "val", frames, stride)
         data["val"] = vinfo
     except Exception as exc:  # recorded; training goes on without a validation loss
         log.warning("no validation split (%s); training without a validation loss", exc)
@@ -227,14 +227,15 @@ def _rest(rest) -> tuple[torch.Tensor, str]:
 def train_hmvae(out_dir=None, steps: int = VAE_STEPS, seed: int = 0, *, config: HMVAEConfig = EMBEDDED_VAE_CONFIG,
                 windows: torch.Tensor | None = None, val_windows: torch.Tensor | None = None, rest=None,
                 batch_size: int = VAE_BATCH, lr: float = LR, log_every: int = 200,
-                deep_only_fraction: float = DEEP_ONLY_FRACTION) -> tuple[HMVAE, dict]:
+                deep_only_fraction: float = DEEP_ONLY_FRACTION, dataset=None) -> tuple[HMVAE, dict]:
     """Train an HM-VAE on 64-frame windows; writes hmvae.pt + hmvae.json into ``out_dir`` (None: nothing).
 
     windows / val_windows: (N, seq_len, 69) (``priors.training.motion_windows``); default: the
-    synthetic train / val splits. rest: (22, 3) or (24, 3) FK skeleton (default: the fixed one).
+    train / val splits of ``dataset`` (the training data the caller hands over:
+    :func:`priors.training.split_motions`). rest: (22, 3) or (24, 3) FK skeleton (default: the fixed one).
     """
     if windows is None:
-        windows, val_windows, data_info = _default_data(config.seq_len, VAE_STRIDE)
+        windows, val_windows, data_info = _default_data(dataset, config.seq_len, VAE_STRIDE)
     else:
         data_info = {"train": {"source": "windows given", "windows": int(windows.shape[0])}}
         if val_windows is not None:
@@ -280,10 +281,12 @@ def train_hmvae(out_dir=None, steps: int = VAE_STEPS, seed: int = 0, *, config: 
 def train_trajectory(out_dir=None, steps: int = TRAJ_STEPS, seed: int = 0, *,
                      config: TrajectoryConfig = EMBEDDED_TRAJECTORY_CONFIG, windows: torch.Tensor | None = None,
                      val_windows: torch.Tensor | None = None, rest=None, frames: int = TRAJ_WINDOW,
-                     batch_size: int = TRAJ_BATCH, lr: float = LR, log_every: int = 100) -> tuple[TrajectoryModel, dict]:
-    """Train the trajectory model on ``frames``-frame windows; writes hmvae_trajectory.pt/.json into ``out_dir``."""
+                     batch_size: int = TRAJ_BATCH, lr: float = LR, log_every: int = 100,
+                     dataset=None) -> tuple[TrajectoryModel, dict]:
+    """Train the trajectory model on ``frames``-frame windows (default: of the splits of ``dataset``, as
+    :func:`train_hmvae`); writes hmvae_trajectory.pt/.json into ``out_dir``."""
     if windows is None:
-        windows, val_windows, data_info = _default_data(frames, TRAJ_STRIDE)
+        windows, val_windows, data_info = _default_data(dataset, frames, TRAJ_STRIDE)
     else:
         data_info = {"train": {"source": "windows given", "windows": int(windows.shape[0])}}
         if val_windows is not None:
@@ -317,8 +320,10 @@ def train_trajectory(out_dir=None, steps: int = TRAJ_STEPS, seed: int = 0, *,
     return model, record
 
 
-def train_embedded(out_dir=None, steps: int | None = None, seed: int = 0, overwrite: bool = False) -> dict:
-    """Train both embedded models into ``out_dir`` (default priors/weights). ``steps`` sets the VAE's
+def train_embedded(out_dir=None, steps: int | None = None, seed: int = 0, overwrite: bool = False,
+                   dataset=None) -> dict:
+    """Train both embedded models into ``out_dir`` (default priors/weights) on ``dataset`` (the training
+    data the caller hands over: :func:`priors.training.split_motions`). ``steps`` sets the VAE's
     steps; the trajectory model's scale with it (default 12000 and 4800: the committed weights). Refuses to overwrite
     existing files unless ``overwrite``."""
     out = Path(out_dir) if out_dir is not None else training.WEIGHTS_DIR
@@ -329,8 +334,8 @@ def train_embedded(out_dir=None, steps: int | None = None, seed: int = 0, overwr
     vae_steps = VAE_STEPS if steps is None else int(steps)
     traj_steps = max(1, round(vae_steps * TRAJ_STEPS / VAE_STEPS))
     rest = training.fixed_rest_skeleton()[0]
-    _, rec_vae = train_hmvae(out, steps=vae_steps, seed=seed, rest=rest)
-    _, rec_traj = train_trajectory(out, steps=traj_steps, seed=seed, rest=rest)
+    _, rec_vae = train_hmvae(out, steps=vae_steps, seed=seed, rest=rest, dataset=dataset)
+    _, rec_traj = train_trajectory(out, steps=traj_steps, seed=seed, rest=rest, dataset=dataset)
     return {"hmvae": rec_vae, "hmvae_trajectory": rec_traj}
 
 
@@ -339,6 +344,7 @@ def main(argv: list[str] | None = None) -> None:
     import argparse
 
     from benchmark import argtypes as at
+    from benchmark.synthetic.train_data import SyntheticTrainingData
 
     ap = argparse.ArgumentParser(description="Train the embedded HM-VAE and trajectory model on the synthetic split.")
     ap.add_argument("--out", default=str(training.WEIGHTS_DIR))
@@ -347,7 +353,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--force", action="store_true", help="overwrite existing weights")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    rec = train_embedded(args.out, steps=args.steps, seed=args.seed, overwrite=args.force)
+    rec = train_embedded(args.out, steps=args.steps, seed=args.seed, overwrite=args.force, dataset=SyntheticTrainingData())
     for k, r in rec.items():
         print(k, {x: r[x] for x in ("train_wall_s", "seconds_per_step", "final_train", "final_val", "checkpoint_bytes")})
 

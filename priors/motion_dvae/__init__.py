@@ -161,7 +161,8 @@ wiring; ``encoder_residual`` absent: no residual input) with this module's key n
 ``prior_logvar.net.*``, ``decoder.net.*``, ``dec_logvar``, ``encoder.*``, ``denoise_encoder.*``,
 ``init_state.*``, ``noise.*`` and the buffers ``state_mean``, ``state_std``, ``x0_mean``,
 ``rest_joints``), loaded strictly. The official release (presumably github.com/g-fiche/Motion-DVAE)
-could not be reached, so its format is unknown: :func:`load_official` loads a file whose keys match
+could not be reached, so its format is unknown: :func:`priors.motion_dvae.checkpoint.load` (size
+"paper", through :func:`~priors.motion_dvae.checkpoint.load_official`) loads a file whose keys match
 these names (or are mapped by a ``key_map``) and otherwise raises a NotImplementedError that says
 what is expected.
 """

@@ -10,7 +10,11 @@ from torch import nn
 
 from benchmark.interpolate import lerp_frames, slerp_frames
 from benchmark.skeleton import NUM_JOINTS
-from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
+from priors.base import (
+    Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionDenoiser, MotionEncoder, PaperNetwork, PriorAdapter,
+    Trainable, WindowSpec,
+)
+from priors.motion_dvae import checkpoint
 from priors.motion_dvae.model import (
     FPS,
     MotionDVAE,
@@ -22,14 +26,8 @@ from priors.motion_dvae.model import (
     state_to_motion,
     uncanonicalise,
 )
-from priors.motion_dvae.checkpoint import (
-    DEFAULT_WEIGHTS,
-    OFFICIAL_UNKNOWN,
-    load_official,
-    load_state_strict,
-    read_project_checkpoint,
-)
-from priors.training import embedded_out_dir, embedded_weights
+from priors.motion_dvae.checkpoint import DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN
+from priors.training import embedded_out_dir
 
 
 # -- the adapter -----------------------------------------------------------------------------
@@ -41,7 +39,7 @@ def _regular_30fps(timestamps: torch.Tensor, fps: float = FPS, tol: float = 1e-4
 
 
 def _grid_frames(window_s: float, frames: int = 30, fps: float = FPS) -> int:
-    """Grid length the completion protocol asks for (mirrors benchmark.protocols.completion._grid)."""
+    """Grid length the completion protocol asks for (mirrors benchmark.protocols.fit_state.decode_grid)."""
     return max(1, math.ceil(window_s * fps / frames - 1e-9)) * frames
 
 
@@ -58,7 +56,7 @@ class _DecoderExport(nn.Module):
         return rot, trans
 
 
-class MotionDVAEPrior(PriorAdapter):
+class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNetwork, Trainable, PriorAdapter):
     """Motion-DVAE as a completion prior (module docstring: latents, prior term, frames)."""
 
     name = "motion-dvae"
@@ -69,9 +67,9 @@ class MotionDVAEPrior(PriorAdapter):
     heading_normalised = True
     joints = tuple(range(1, NUM_JOINTS))
     shape_conditioned = False
-    has_encoder = True
     sixd_layout = None
     frozen_network = "net"
+    default_weights = DEFAULT_WEIGHTS
     prior_term_kind = "learned"  # or "l2"
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
@@ -81,13 +79,10 @@ class MotionDVAEPrior(PriorAdapter):
                 raise ValueError(f"motion-dvae size 'paper' needs official weights, and none are known: {OFFICIAL_UNKNOWN}. "
                                  "Use size='embedded' (the project's weights), or map an official file with "
                                  "priors.motion_dvae.checkpoint.load_official(path, key_map=...)")
-            self.net = load_official(weights)
+            self.net, self.checkpoint = checkpoint.load(weights, "paper")
         elif size == "embedded":
-            path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS)
-            sd, cfg = read_project_checkpoint(path)
-            self.net = MotionDVAE(**cfg)
-            load_state_strict(self.net, sd, str(path))
-            self.weights_path = str(path)
+            self.net, self.checkpoint = checkpoint.load(self.embedded_weights(weights), "embedded")
+            self.weights_path = str(self.checkpoint.file)
         else:
             raise ValueError(f"motion-dvae: unknown size {size!r}; expected 'embedded' or 'paper'")
         self.freeze_network(device)
@@ -100,10 +95,6 @@ class MotionDVAEPrior(PriorAdapter):
         self.net = net
         self.freeze_network(device)
         return self
-
-    @property
-    def device(self) -> torch.device:
-        return self.net.state_mean.device
 
     @property
     def z_dim(self) -> int:
@@ -271,7 +262,7 @@ class MotionDVAEPrior(PriorAdapter):
                           input_names=["x0", "z"], output_names=["rotations", "trans"])
 
     @classmethod
-    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
+    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False, dataset=None) -> dict:
         """``python -m benchmark train motion-dvae``: retrain the embedded weights (train_motion_dvae).
 
         ``steps`` is the DVAE phase's step count; the denoising phase gets 2/5 as many."""
@@ -281,5 +272,5 @@ class MotionDVAEPrior(PriorAdapter):
         kw = {}
         if steps is not None:
             kw = {"steps": int(steps), "denoise_steps": max(1, 2 * int(steps) // 5)}
-        _, record = train_motion_dvae(out, seed=seed, **kw)
+        _, record = train_motion_dvae(out, seed=seed, dataset=dataset, **kw)
         return record

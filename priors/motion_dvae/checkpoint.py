@@ -1,4 +1,6 @@
-"""Motion-DVAE checkpoints: the project format (strict) and the official one (strict, with a key map)."""
+"""Motion-DVAE checkpoints, read by :func:`load` (``load(path, size) -> (MotionDVAE, CheckpointReport)``):
+the project format and the official one (:func:`load_official`, with a key map), both strict
+(:func:`priors.checkpoints.load_state_strict`)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ from typing import Callable
 import torch
 
 from benchmark.safe_loading import STATE_DICT_FIX, UnsafeFileError, torch_load_weights
+from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.motion_dvae.model import FPS, MotionDVAE, PAPER_CONFIG
 
 
@@ -21,9 +24,8 @@ OFFICIAL_UNKNOWN = (
 
 
 # -- checkpoints -----------------------------------------------------------------------------
-def read_project_checkpoint(path: str | Path) -> tuple[dict, dict]:
+def _read_project(path: Path) -> tuple[dict, dict]:
     """(state_dict, config) of a project checkpoint ``priors/weights/motion_dvae.pt``, strictly checked."""
-    path = Path(path)
     ckpt = torch_load_weights(path, f"retrain with `{TRAIN_COMMAND}`")
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict) or not isinstance(ckpt.get("config"), dict):
         top = sorted(ckpt)[:20] if isinstance(ckpt, dict) else type(ckpt).__name__
@@ -39,22 +41,11 @@ def read_project_checkpoint(path: str | Path) -> tuple[dict, dict]:
                                 "encoder_residual": bool(cfg.get("encoder_residual", False))}
 
 
-def load_state_strict(model: MotionDVAE, state_dict: dict, source: str) -> None:
-    """Copy ``state_dict`` into ``model``: every key present with the model's shape, no extra key."""
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(state_dict))
-    if missing:
-        raise KeyError(f"{source}: missing {len(missing)} key(s), e.g. {missing[:5]}; a motion-dvae checkpoint holds "
-                       f"{len(expected)} tensors (module names: {expected_modules()})")
-    extra = sorted(set(state_dict) - set(expected))
-    if extra:
-        raise KeyError(f"{source}: unexpected key(s) {extra[:5]} (total {len(extra)}); expected module names: {expected_modules()}")
-    for k, v in expected.items():
-        t = state_dict[k]
-        if not torch.is_tensor(t) or tuple(t.shape) != tuple(v.shape):
-            found = tuple(t.shape) if torch.is_tensor(t) else type(t).__name__
-            raise ValueError(f"{source}: key {k!r} has shape {found}, expected {tuple(v.shape)} for config {model.config}")
-    model.load_state_dict(state_dict, strict=True)
+def _load_strict(model: MotionDVAE, state_dict: dict, source) -> list[str]:
+    """Every key present with the model's shape, no extra key (:func:`priors.checkpoints.load_state_strict`)."""
+    loaded, _ = load_state_strict(model, state_dict, source, "motion-dvae",
+                                  note=f"config {model.config}; expected module names: {expected_modules()}")
+    return loaded
 
 
 def expected_modules() -> list[str]:
@@ -64,8 +55,8 @@ def expected_modules() -> list[str]:
 
 
 def load_official(path: str | Path, model: MotionDVAE | None = None,
-                  key_map: dict | Callable[[str], str | None] | None = None) -> MotionDVAE:
-    """Hook for the official Motion-DVAE weights, whose format is unknown.
+                  key_map: dict | Callable[[str], str | None] | None = None) -> tuple[MotionDVAE, CheckpointReport]:
+    """The official Motion-DVAE weights, whose format is unknown (what ``load(path, "paper")`` reads).
 
     Reads ``path`` (a torch file: a state dict, or a dict with ``state_dict`` / ``model``), renames
     its keys with ``key_map`` (a dict official-name -> our name, or a function returning our name
@@ -83,7 +74,6 @@ def load_official(path: str | Path, model: MotionDVAE | None = None,
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"motion-dvae official weights: {path} does not exist ({OFFICIAL_UNKNOWN})")
-    model = model if model is not None else MotionDVAE(**PAPER_CONFIG)
     try:
         raw = torch_load_weights(path, STATE_DICT_FIX)
     except UnsafeFileError:
@@ -91,6 +81,7 @@ def load_official(path: str | Path, model: MotionDVAE | None = None,
     except Exception as exc:
         raise NotImplementedError(f"{path}: cannot read it as a torch weights file ({type(exc).__name__}: {exc}); "
                                   f"{OFFICIAL_UNKNOWN}") from exc
+    model = model if model is not None else MotionDVAE(**PAPER_CONFIG)
     sd = raw
     if isinstance(raw, dict):
         for key in ("state_dict", "model", "model_state_dict"):
@@ -111,5 +102,22 @@ def load_official(path: str | Path, model: MotionDVAE | None = None,
             "(official name -> ours) and call priors.motion_dvae.checkpoint.load_official(path, key_map=...), checking "
             "the wiring in this module's docstring against the official code."
         )
-    load_state_strict(model, sd, str(path))
-    return model
+    loaded = _load_strict(model, sd, path)
+    return model, CheckpointReport(file=path, format="official", config=dict(model.config), loaded=loaded)
+
+
+def load(path: str | Path, size: str = "embedded", key_map: dict | Callable[[str], str | None] | None = None
+         ) -> tuple[MotionDVAE, CheckpointReport]:
+    """The Motion-DVAE network of a checkpoint, strictly loaded, and what was read.
+
+    size "embedded": the project's file (``priors/weights/motion_dvae.pt``) at the size its config
+    says; size "paper": an official file through :func:`load_official` (its keys mapped by ``key_map``).
+    """
+    check_size("motion-dvae", size)
+    if size == "paper":
+        return load_official(path, key_map=key_map)
+    path = Path(path)
+    sd, cfg = _read_project(path)
+    model = MotionDVAE(**cfg)
+    loaded = _load_strict(model, sd, path)
+    return model, CheckpointReport(file=path, format="project", config=cfg, loaded=loaded)

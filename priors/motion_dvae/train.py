@@ -98,12 +98,14 @@ def train_motion_dvae(
     encoder_point_weight: float | None = None,
     encoder_root_marker_m: float = 0.0,
     kl_anneal_fraction: float | None = None,
+    dataset=None,
 ) -> tuple[MotionDVAE, dict]:
     """Train the embedded Motion-DVAE (phase 1: DVAE on clean windows; phase 2: denoising networks on
     noisy copies, prior and decoder frozen) and write ``motion_dvae.pt`` + ``motion_dvae.json``.
 
     windows / val_windows: (N, F, 69) raw windows (default: ``priors.training.motion_windows`` of the
-    synthetic train / val splits, ``frames`` frames every ``stride`` at 30 fps). rest_joints: the
+    train / val splits of ``dataset``, the training data the caller hands over
+    (:func:`priors.training.split_motions`), ``frames`` frames every ``stride`` at 30 fps). rest_joints: the
     skeleton of the point losses (default ``priors.training.fixed_rest_skeleton``). The shared loop
     ``priors.training.train_loop`` is used (Adam, cosine decay to 0.1 lr, one thread); the paper
     (HuMoR settings) uses Adamax lr 1e-4 for 200 epochs, too slow for the embedded CPU budget.
@@ -135,15 +137,15 @@ def train_motion_dvae(
     cfg = dict(EMBEDDED_CONFIG, **(config or {}))
     data_info: dict = {}
     if windows is None:
-        motions = training.load_split_motions("train")
+        motions = training.split_motions(dataset, "train")
         windows = training.motion_windows(motions, frames, stride, fps=FPS)
-        data_info["train"] = {"source": "benchmark.synthetic.splits.build_split('train')", "motions": len(motions),
+        data_info["train"] = {"source": dataset.source("train"), "motions": len(motions),
                               "frames": frames, "stride": stride, "windows": int(windows.shape[0])}
         if val_windows is None:
             try:
-                vm = training.load_split_motions("val")
+                vm = training.split_motions(dataset, "val")
                 val_windows = training.motion_windows(vm, frames, frames, fps=FPS, max_windows=val_max_windows, seed=seed)
-                data_info["val"] = {"source": "benchmark.synthetic.splits.build_split('val')", "motions": len(vm),
+                data_info["val"] = {"source": dataset.source("val"), "motions": len(vm),
                                     "frames": frames, "stride": frames, "windows": int(val_windows.shape[0])}
             except Exception as exc:
                 log.warning("no validation split (%s); training without a validation loss", exc)
@@ -175,9 +177,10 @@ def train_motion_dvae(
     if init_weights is not None:
         import hashlib
 
-        from priors.motion_dvae.checkpoint import read_project_checkpoint
+        from priors.motion_dvae import checkpoint
 
-        sd, init_cfg = read_project_checkpoint(Path(init_weights))
+        init_net, init_report = checkpoint.load(Path(init_weights))
+        sd, init_cfg = init_net.state_dict(), init_report.config
         if {k: init_cfg[k] for k in ("z_dim", "hidden", "mlp_hidden")} != {k: cfg[k] for k in ("z_dim", "hidden", "mlp_hidden")}:
             raise ValueError(f"init_weights {init_weights}: config {init_cfg} does not match {cfg}")
         keep = ("gen_rnn.", "prior_mean.", "prior_logvar.", "decoder.", "dec_logvar", "encoder.", "state_mean", "state_std", "x0_mean")
@@ -185,7 +188,8 @@ def train_motion_dvae(
             keep = keep + ("denoise_encoder.", "init_state.", "noise.")
         part = {k: v.float() for k, v in sd.items() if k.startswith(keep)}
         if init_denoise_weights is not None:
-            dsd, dcfg = read_project_checkpoint(Path(init_denoise_weights))
+            denoise_net, denoise_report = checkpoint.load(Path(init_denoise_weights))
+            dsd, dcfg = denoise_net.state_dict(), denoise_report.config
             if {k: dcfg[k] for k in ("z_dim", "hidden", "mlp_hidden")} != {k: cfg[k] for k in ("z_dim", "hidden", "mlp_hidden")}:
                 raise ValueError(f"init_denoise_weights {init_denoise_weights}: config {dcfg} does not match {cfg}")
             dkeep = ("denoise_encoder.", "init_state.", "noise.")
@@ -334,6 +338,7 @@ def train_motion_dvae(
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.motion_dvae.train --out priors/weights``: train the embedded weights."""
     from benchmark import argtypes as at
+    from benchmark.synthetic.train_data import SyntheticTrainingData
 
     # steps / denoise steps 0: skip that phase (needs --init)
     ap = training.recipe_parser("Train the embedded Motion-DVAE on the synthetic training split.", DEFAULT_WEIGHTS, 1800,
@@ -371,7 +376,8 @@ def main(argv: list[str] | None = None) -> None:
                                    train_generative=not args.encoder_only,
                                    encoder_point_weight=args.encoder_point_weight,
                                    encoder_root_marker_m=args.encoder_root_marker,
-                                   config=None if args.encoder_residual is None else {"encoder_residual": args.encoder_residual})
+                                   config=None if args.encoder_residual is None else {"encoder_residual": args.encoder_residual},
+                                   dataset=SyntheticTrainingData())
     print({k: rec[k] for k in ("train_wall_s", "checkpoint_bytes")})
 
 

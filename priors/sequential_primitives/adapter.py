@@ -3,16 +3,17 @@
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import torch
 from torch import nn
 
 from benchmark.frames import yaw_matrix
 from benchmark.skeleton import NUM_JOINTS
-from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
+from priors.base import (
+    Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionEncoder, PaperNetwork, PriorAdapter, Trainable, WindowSpec,
+)
+from priors.sequential_primitives import checkpoint
 from priors.sequential_primitives.model import (
-    ARCH_KEYS,
     MODEL_JOINTS,
     PAPER_CONFIG,
     PrimitiveDecoder,
@@ -21,15 +22,8 @@ from priors.sequential_primitives.model import (
     canonicalise,
     insert_feet,
 )
-from priors.sequential_primitives.checkpoint import (
-    DEFAULT_WEIGHTS,
-    NOT_PUBLIC,
-    OFFICIAL_MAPPING_NEEDS,
-    load_into,
-    network_from_checkpoint,
-    read_checkpoint,
-)
-from priors.training import embedded_out_dir, embedded_weights
+from priors.sequential_primitives.checkpoint import DEFAULT_WEIGHTS, NOT_PUBLIC, OFFICIAL_MAPPING_NEEDS
+from priors.training import embedded_out_dir
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +45,7 @@ class DecoderExport(nn.Module):
 
 
 # -- the adapter --------------------------------------------------------------------------------
-class SequentialPrimitivesPrior(PriorAdapter):
+class SequentialPrimitivesPrior(MotionEncoder, ExportableDecoder, PaperNetwork, Trainable, PriorAdapter):
     """Sequential latent primitives (Marsot et al. 2022) as a continuous-time prior (module docstring).
 
     Latents ``{"z": (B, 8, D)}`` from the PointNet initialisation encoder; decode at any timestamps;
@@ -67,9 +61,9 @@ class SequentialPrimitivesPrior(PriorAdapter):
     heading_normalised = True
     joints = MODEL_JOINTS
     shape_conditioned = True
-    has_encoder = True
     sixd_layout = "columns"
     frozen_network = "net"
+    default_weights = DEFAULT_WEIGHTS
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=weights, device=device)
@@ -80,32 +74,16 @@ class SequentialPrimitivesPrior(PriorAdapter):
                     "(python -m benchmark train sequential-primitives), or pass a paper-size checkpoint in this "
                     f"project's format; an official-weights loader would have to map onto: {OFFICIAL_MAPPING_NEEDS}"
                 )
-            ckpt = read_checkpoint(weights)
-            arch = {k: ckpt["config"][k] for k in ARCH_KEYS}
-            diff = {k: (arch[k], PAPER_CONFIG[k]) for k in ARCH_KEYS
-                    if (list(arch[k]) if isinstance(arch[k], (list, tuple)) else arch[k]) != PAPER_CONFIG[k]}
-            if diff:
-                raise ValueError(f"{weights}: not a paper-size checkpoint; config differs (found, paper): {diff}")
-            self.net = SequentialPrimitives(**arch)
-            load_into(self.net, ckpt, weights)
-            path = Path(weights)
         elif size == "embedded":
-            path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS,
-                                    "or `python -m priors.sequential_primitives.train --out priors/weights`")
-            self.net = network_from_checkpoint(path)
-        else:
-            raise ValueError(f"sequential-primitives: unknown size {size!r}; expected 'embedded' or 'paper'")
-        self.weights_path = str(path)
+            weights = self.embedded_weights(weights, "or `python -m priors.sequential_primitives.train --out priors/weights`")
+        self.net, self.checkpoint = checkpoint.load(weights, size)
+        self.weights_path = str(self.checkpoint.file)
         self.freeze_network(device)
         self._z_init: torch.Tensor | None = None
         self._window_s: float = DEFAULT_WINDOW_S
         self._warned_shape = False
 
     # -- plumbing
-    @property
-    def device(self) -> torch.device:
-        return next(self.net.parameters()).device
-
     @classmethod
     def paper_network(cls) -> nn.Module:
         """The paper-size network (D = 256, m = 8, 8 betas) with random weights."""
@@ -217,7 +195,7 @@ class SequentialPrimitivesPrior(PriorAdapter):
                           input_names=["z", "shape", "tau"], output_names=["rotations", "trans"])
 
     @classmethod
-    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
+    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False, dataset=None) -> dict:
         """``python -m benchmark train sequential-primitives``: the embedded weights (see
         :func:`train_sequential_primitives`). ``steps`` sets the motion-VAE steps; the initialisation
         encoder gets steps * DEFAULT_POINT_STEPS / DEFAULT_STEPS."""
@@ -227,5 +205,5 @@ class SequentialPrimitivesPrior(PriorAdapter):
         kw = {}
         if steps is not None:
             kw = {"steps": int(steps), "point_steps": max(1, round(int(steps) * DEFAULT_POINT_STEPS / DEFAULT_STEPS))}
-        _, record = train_sequential_primitives(out, seed=seed, **kw)
+        _, record = train_sequential_primitives(out, seed=seed, dataset=dataset, **kw)
         return record

@@ -1,4 +1,5 @@
-"""Sequential latent primitives: the project checkpoint format (strict reader and loader).
+"""Sequential latent primitives: the project checkpoint format, read strictly by :func:`load`
+(``load(path, size) -> (SequentialPrimitives, CheckpointReport)``).
 
 Official weights are not public (``NOT_PUBLIC``); a loader for them would have to map their keys onto
 ``OFFICIAL_MAPPING_NEEDS``.
@@ -8,10 +9,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
-
 from benchmark.safe_loading import UnsafeFileError, torch_load_weights
-from priors.sequential_primitives.model import ARCH_KEYS, FORMAT, SequentialPrimitives
+from priors.checkpoints import CheckpointReport, check_size, load_state_strict
+from priors.sequential_primitives.model import ARCH_KEYS, FORMAT, PAPER_CONFIG, SequentialPrimitives
 
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "sequential_primitives.pt"
@@ -32,9 +32,8 @@ OFFICIAL_MAPPING_NEEDS = (
 
 
 # -- checkpoints --------------------------------------------------------------------------------
-def read_checkpoint(file: str | Path) -> dict:
+def _read(file: Path) -> dict:
     """The project checkpoint ``{"state_dict", "config"}``; clear errors for anything else."""
-    file = Path(file)
     if not file.exists():
         raise FileNotFoundError(f"sequential-primitives weights not found: {file}")
     try:
@@ -63,25 +62,22 @@ def read_checkpoint(file: str | Path) -> dict:
     return ckpt
 
 
-def load_into(net: SequentialPrimitives, ckpt: dict, file: str | Path) -> None:
-    """Strict load: every key with the network's shape; extra keys are an error too."""
-    sd = ckpt["state_dict"]
-    expected = net.state_dict()
-    for k, v in expected.items():
-        if k not in sd:
-            raise KeyError(f"{file}: missing key {k!r} (shape {tuple(v.shape)}); the checkpoint must hold all "
-                           f"{len(expected)} entries of SequentialPrimitives")
-        if tuple(sd[k].shape) != tuple(v.shape):
-            raise ValueError(f"{file}: key {k!r} has shape {tuple(sd[k].shape)}, expected {tuple(v.shape)} for config "
-                             f"{ {a: net.cfg[a] for a in ('latent', 'd_model', 'mlp_hidden', 'shape_dim')} }")
-    extra = sorted(set(sd) - set(expected))
-    if extra:
-        raise KeyError(f"{file}: unexpected keys {extra[:10]} (not SequentialPrimitives entries)")
-    net.load_state_dict(sd, strict=True)
+def load(path: str | Path, size: str = "embedded") -> tuple[SequentialPrimitives, CheckpointReport]:
+    """The network of a project checkpoint, strictly loaded, and what was read.
 
-
-def network_from_checkpoint(file: str | Path) -> SequentialPrimitives:
-    ckpt = read_checkpoint(file)
-    net = SequentialPrimitives(**{k: ckpt["config"][k] for k in ARCH_KEYS})
-    load_into(net, ckpt, file)
-    return net
+    Official weights are not public, so both sizes read this project's format; size "paper" also
+    requires the paper architecture (``PAPER_CONFIG``) in the file's config.
+    """
+    check_size("sequential-primitives", size)
+    file = Path(path)
+    ckpt = _read(file)
+    arch = {k: ckpt["config"][k] for k in ARCH_KEYS}
+    if size == "paper":
+        diff = {k: (arch[k], PAPER_CONFIG[k]) for k in ARCH_KEYS
+                if (list(arch[k]) if isinstance(arch[k], (list, tuple)) else arch[k]) != PAPER_CONFIG[k]}
+        if diff:
+            raise ValueError(f"{path}: not a paper-size checkpoint; config differs (found, paper): {diff}")
+    net = SequentialPrimitives(**arch)
+    loaded, _ = load_state_strict(net, ckpt["state_dict"], path, "SequentialPrimitives",
+                                  note=f"config { {a: net.cfg[a] for a in ('latent', 'd_model', 'mlp_hidden', 'shape_dim')} }")
+    return net, CheckpointReport(file=file, format="project", config=dict(ckpt["config"]), loaded=loaded)

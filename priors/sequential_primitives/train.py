@@ -278,11 +278,13 @@ def train_sequential_primitives(
     lr: float = 1e-3,
     log_every: int = 100,
     max_val_windows: int = 256,
+    dataset=None,
 ) -> tuple[SequentialPrimitives, dict]:
     """Train the motion VAE (``steps``) then the initialisation encoder (``point_steps``); write
     ``sequential_primitives.pt`` + ``.json`` into ``out_dir`` (None writes nothing).
 
-    Data: by default the synthetic train / val splits; or ``motions`` / ``val_motions`` (Motion
+    Data: by default the train / val splits of ``dataset`` (the training data the caller hands over:
+    :func:`priors.training.split_motions`); or ``motions`` / ``val_motions`` (Motion
     lists); or ``windows`` (N, F, 69) (+ ``window_shapes`` (N, S)) for tests (crops of
     min(90, F)..min(150, F) frames). ``body``: the body that poses the initialisation encoder's point
     clouds (default: the embedded Anny body; only built when point_steps > 0). ``rest_joints``
@@ -298,12 +300,12 @@ def train_sequential_primitives(
         val_bank = WindowBank.from_windows(val_windows, val_window_shapes, S) if val_windows is not None else None
     else:
         if motions is None:
-            motions = training.load_split_motions("train")
-            data_info["train"] = {"source": "benchmark.synthetic.splits.build_split('train')"}
+            motions = training.split_motions(dataset, "train")
+            data_info["train"] = {"source": dataset.source("train")}
             if val_motions is None:
                 try:
-                    val_motions = training.load_split_motions("val")
-                    data_info["val"] = {"source": "benchmark.synthetic.splits.build_split('val')"}
+                    val_motions = training.split_motions(dataset, "val")
+                    data_info["val"] = {"source": dataset.source("val")}
                 except Exception as exc:
                     log.warning("no validation split (%s); training without a validation loss", exc)
                     data_info["val"] = {"source": None, "error": f"{type(exc).__name__}: {exc}"}
@@ -436,12 +438,14 @@ def train_sequential_primitives(
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.sequential_primitives.train --out priors/weights``: train the embedded weights."""
     from benchmark import argtypes as at
+    from benchmark.synthetic.train_data import SyntheticTrainingData
 
     ap = training.recipe_parser("Train the embedded sequential-primitives prior on the synthetic split.",
                                 DEFAULT_WEIGHTS, DEFAULT_STEPS)
     ap.add_argument("--point-steps", type=at.positive_int, default=DEFAULT_POINT_STEPS)
     args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
-    _, rec = train_sequential_primitives(args.out, steps=args.steps, point_steps=args.point_steps, seed=args.seed)
+    _, rec = train_sequential_primitives(args.out, steps=args.steps, point_steps=args.point_steps, seed=args.seed,
+                                         dataset=SyntheticTrainingData())
     print({k: rec[k] for k in ("train_wall_s", "final_train", "final_val", "point_final_val", "checkpoint_bytes")})
 
 

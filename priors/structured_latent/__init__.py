@@ -54,7 +54,7 @@ strictly; training record ``structured_latent.json`` beside it. Official weights
 """
 
 from priors.structured_latent.adapter import StructuredLatentPrior
-from priors.structured_latent.checkpoint import DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN, load_checkpoint
+from priors.structured_latent.checkpoint import DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN
 from priors.structured_latent.gradnorm import GradNorm
 from priors.structured_latent.model import (
     EMBEDDED_CONFIG, PAPER_CHUM_CONFIG, PAPER_CONFIG, StructuredLatentCVAE, kl_divergence,
@@ -62,7 +62,7 @@ from priors.structured_latent.model import (
 from priors.structured_latent.train import build_anchor_data, train_structured_latent
 
 __all__ = [
-    "StructuredLatentPrior", "StructuredLatentCVAE", "GradNorm", "load_checkpoint", "train_structured_latent",
+    "StructuredLatentPrior", "StructuredLatentCVAE", "GradNorm", "train_structured_latent",
     "build_anchor_data", "kl_divergence", "EMBEDDED_CONFIG", "PAPER_CONFIG", "PAPER_CHUM_CONFIG", "DEFAULT_WEIGHTS",
     "OFFICIAL_UNKNOWN",
 ]

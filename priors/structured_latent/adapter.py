@@ -8,13 +8,17 @@ import torch
 from torch import nn
 
 from benchmark.interpolate import lerp_frames, slerp_frames
-from priors.base import Decoded, ExportSpec, FitBatch, PriorAdapter, WindowSpec
+from priors.base import (
+    AnchorDecoder, Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionEncoder, PaperNetwork, PriorAdapter, Trainable,
+    WindowSpec,
+)
+from priors.structured_latent import checkpoint
 from priors.structured_latent.model import PAPER_CONFIG, StructuredLatentCVAE
 from priors.structured_latent.representation import (
     ANCHORS, JOINTS, SIXD_LAYOUT, canonical_frame, canonicalise, motion_to_chi, resample_anchors,
 )
-from priors.structured_latent.checkpoint import DEFAULT_WEIGHTS, OFFICIAL_UNKNOWN, load_checkpoint
-from priors.training import embedded_out_dir, embedded_weights
+from priors.structured_latent.checkpoint import DEFAULT_WEIGHTS
+from priors.training import embedded_out_dir
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +36,7 @@ class _AnchorDecoder(nn.Module):
 
 
 # -- the adapter ------------------------------------------------------------------------------
-class StructuredLatentPrior(PriorAdapter):
+class StructuredLatentPrior(MotionEncoder, AnchorDecoder, ExportableDecoder, PaperNetwork, Trainable, PriorAdapter):
     """Structured latent space (Marsot et al. 3DV 2022) as a continuous-time prior.
 
     Latents: ``{"z": (B, L), "window_s": (B, 1)}``; z starts as a sample of N(0, I) (the paper's
@@ -54,22 +58,19 @@ class StructuredLatentPrior(PriorAdapter):
     heading_normalised = True
     joints = JOINTS
     shape_conditioned = True
-    has_encoder = True
     sixd_layout = SIXD_LAYOUT
     frozen_network = "net"
+    default_weights = DEFAULT_WEIGHTS
     anchors = ANCHORS
     constant_latents = ("window_s",)  # latents decode reads but never differentiates (zero gradient)
     init = "sample"  # "sample": z ~ N(0, I); "zero": z = 0 (the prior mean)
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=weights, device=device)
-        if size == "paper":
-            raise ValueError(OFFICIAL_UNKNOWN + ("" if weights is None else f" (weights given: {weights})"))
-        if size != "embedded":
-            raise ValueError(f"structured-latent: unknown size {size!r}; expected 'embedded' or 'paper'")
-        path = embedded_weights(self.name, weights, DEFAULT_WEIGHTS)
-        self.net, self.checkpoint_config = load_checkpoint(path)
-        self.weights_path = str(path)
+        if size == "embedded":
+            weights = self.embedded_weights(weights)
+        self.net, self.checkpoint = checkpoint.load(weights, size)
+        self.weights_path = str(self.checkpoint.file)
         self.freeze_network(device)
 
     @classmethod
@@ -77,7 +78,7 @@ class StructuredLatentPrior(PriorAdapter):
         """An adapter around an in-memory network (tests, freshly trained models); frozen."""
         self = cls.__new__(cls)
         PriorAdapter.__init__(self, size="embedded", weights=None)
-        self.net, self.checkpoint_config = net, {"network": net.config, "normalisation": net.normalisation()}
+        self.net = net
         self.freeze_network()
         return self
 
@@ -89,10 +90,6 @@ class StructuredLatentPrior(PriorAdapter):
     @property
     def shape_dim(self) -> int:
         return self.net.shape_dim
-
-    @property
-    def device(self) -> torch.device:
-        return next(self.net.parameters()).device
 
     # -- latents ------------------------------------------------------------------------------
     def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -200,12 +197,12 @@ class StructuredLatentPrior(PriorAdapter):
         return StructuredLatentCVAE(**{**PAPER_CONFIG, "latent": int(latent)})
 
     @classmethod
-    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
+    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False, dataset=None) -> dict:
         """``python -m benchmark train structured-latent``: retrain the embedded weights."""
         from priors.structured_latent.train import train_structured_latent
 
         out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
-        _, record = train_structured_latent(out, steps=steps, seed=seed)
+        _, record = train_structured_latent(out, steps=steps, seed=seed, dataset=dataset)
         return record
 
 

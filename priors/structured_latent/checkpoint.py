@@ -1,13 +1,13 @@
-"""Structured latent space checkpoints: the project format, read strictly (official weights: format unknown,
-see ``OFFICIAL_UNKNOWN``)."""
+"""Structured latent space checkpoints: the project format, read strictly by :func:`load`
+(``load(path, size) -> (StructuredLatentCVAE, CheckpointReport)``; official weights: format unknown, see
+``OFFICIAL_UNKNOWN``)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import torch
-
 from benchmark.safe_loading import UnsafeFileError, torch_load_weights
+from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.structured_latent.model import StructuredLatentCVAE
 
 CHECKPOINT_NAME = "structured_latent.pt"
@@ -27,10 +27,15 @@ OFFICIAL_UNKNOWN = (
 
 
 # -- checkpoints ------------------------------------------------------------------------------
-def load_checkpoint(path: str | Path) -> tuple[StructuredLatentCVAE, dict]:
+def load(path: str | Path, size: str = "embedded") -> tuple[StructuredLatentCVAE, CheckpointReport]:
     """Build and strictly load a project checkpoint ``{"state_dict", "config": {"network",
     "normalisation", "format"}}`` (written by :func:`priors.structured_latent.train.train_structured_latent`). Every tensor of the
-    network must be present with its shape and nothing else may be (errors name the file and key)."""
+    network must be present with its shape and nothing else may be (errors name the file and key).
+    The report's ``config`` is the file's config. Size "paper": no official format is known
+    (``OFFICIAL_UNKNOWN``)."""
+    check_size("structured-latent", size)
+    if size == "paper":
+        raise ValueError(OFFICIAL_UNKNOWN + ("" if path is None else f" (weights given: {path})"))
     path = Path(path)
     try:
         ckpt = torch_load_weights(path, f"retrain with `{TRAIN_COMMAND}`")
@@ -49,19 +54,8 @@ def load_checkpoint(path: str | Path) -> tuple[StructuredLatentCVAE, dict]:
         net = StructuredLatentCVAE(**cfg["network"])
     except TypeError as exc:
         raise ValueError(f"{path}: field 'config.network' = {cfg['network']!r} does not describe a StructuredLatentCVAE ({exc})") from exc
-    raw = ckpt["state_dict"]
-    expected = net.state_dict()
-    for key, ref in expected.items():
-        if key not in raw:
-            raise KeyError(f"{path}: missing key {key!r} (shape {tuple(ref.shape)}); the checkpoint must hold all of {sorted(expected)}")
-        if not torch.is_tensor(raw[key]) or raw[key].shape != ref.shape:
-            found = tuple(raw[key].shape) if torch.is_tensor(raw[key]) else type(raw[key]).__name__
-            raise ValueError(f"{path}: key {key!r} has shape {found}, expected {tuple(ref.shape)} for config {net.config}")
-    extra = sorted(set(raw) - set(expected))
-    if extra:
-        raise ValueError(f"{path}: unexpected keys {extra[:10]} (not part of StructuredLatentCVAE with config {net.config})")
-    net.load_state_dict(raw, strict=True)
-    return net, cfg
+    loaded, _ = load_state_strict(net, ckpt["state_dict"], path, "StructuredLatentCVAE", note=f"config {net.config}")
+    return net, CheckpointReport(file=path, format="project", config=cfg, loaded=loaded)
 
 
-__all__ = ["load_checkpoint", "DEFAULT_WEIGHTS", "CHECKPOINT_NAME", "CHECKPOINT_FORMAT", "OFFICIAL_UNKNOWN", "TRAIN_COMMAND"]
+__all__ = ["load", "DEFAULT_WEIGHTS", "CHECKPOINT_NAME", "CHECKPOINT_FORMAT", "OFFICIAL_UNKNOWN", "TRAIN_COMMAND"]

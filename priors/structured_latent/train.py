@@ -1,8 +1,9 @@
 """Training the structured latent space in the paper's two phases (paper 001 §3.3, Supp. §2).
 
-Data (:func:`build_anchor_data`): every motion of the synthetic train split is cut into
-one-cycle windows by :func:`benchmark.synthetic.cycles.find_cycles` (0.3-3 s, the generator's own
-gait / action phases, both feet as stride starts) and, as this project's extension, into windows
+Data (:func:`build_anchor_data`): every motion of the train split of the dataset the caller hands
+over (the synthetic train split) is cut into one-cycle windows by the dataset's ``find_cycles``
+(:func:`benchmark.synthetic.cycles.find_cycles`: 0.3-3 s, the generator's own gait / action phases,
+both feet as stride starts) and, as this project's extension, into windows
 of fixed durations ``windows_s`` (default 2 s and 4 s, every ``window_stride_s`` = 2 s) of whatever
 the motion does, so that the 4 s windows of table1 and the 2 s windows of the reconstruction table
 (and other non-cyclic windows) are inside the training distribution. Each window is resampled to 100 anchors uniformly in time and aligned
@@ -60,8 +61,9 @@ import numpy as np
 import torch
 
 from benchmark.body.lbs import forward_kinematics
+from benchmark.interpolate import resample_intervals
 from benchmark.rotations import matrix_to_sixd
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
 from priors.structured_latent.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_NAME
 from priors.structured_latent.gradnorm import GradNorm
 from priors.structured_latent.model import EMBEDDED_CONFIG, StructuredLatentCVAE, kl_divergence
@@ -100,8 +102,6 @@ def _rest_of(motion) -> tuple[torch.Tensor, str]:
         rest = torch.as_tensor(sk["rest_joints"], dtype=torch.float32)
         if rest.shape == (NUM_JOINTS, 3):
             return rest, "meta"
-    from priors.training import SMPL_LIKE_REST_JOINTS
-
     return torch.tensor(SMPL_LIKE_REST_JOINTS, dtype=torch.float32), "smpl-like"
 
 
@@ -112,7 +112,7 @@ def _subset(n: int, k: int | None, seed: int, salt: int) -> np.ndarray:
     return np.sort(rng.choice(n, size=k, replace=False))
 
 
-def build_anchor_data(motions, *, cycles: bool = True, windows_s=TRAIN_DEFAULTS["windows_s"],
+def build_anchor_data(motions, *, find_cycles=None, windows_s=TRAIN_DEFAULTS["windows_s"],
                       window_stride_s: float = TRAIN_DEFAULTS["window_stride_s"], cycle_options: dict | None = None,
                       max_cycles: int | None = None, max_windows: int | None = None, shape_dim: int | None = None,
                       seed: int = 0) -> dict:
@@ -120,16 +120,17 @@ def build_anchor_data(motions, *, cycles: bool = True, windows_s=TRAIN_DEFAULTS[
 
     Returns {"pose": (N, 100, 120) 6D minus identity, "trans": (N, 100, 3) m (canonical),
     "tau": (N, 100) s, "shape": (N, S), "rest": (N, 22, 3), "is_cycle": (N,) bool, "counts": {...}}.
-    A motion without ``shape`` gets zeros of ``shape_dim`` (required then).
+    A motion without ``shape`` gets zeros of ``shape_dim`` (required then). ``find_cycles(motion,
+    **cycle_options)``: the motion cycles of a motion (objects with ``start`` and ``end`` in seconds),
+    the training dataset's (:func:`benchmark.synthetic.cycles.find_cycles`); None: fixed-duration
+    windows only.
     """
-    from benchmark.synthetic.cycles import find_cycles, resample_intervals
-
     opts = dict(cycle_options or {})
     per = []
     rest_sources: dict[str, int] = {}
     for i, m in enumerate(motions):
         iv, flag = [], []
-        if cycles:
+        if find_cycles is not None:
             cyc = find_cycles(m, **opts)
             iv += [(c.start, c.end) for c in cyc]
             flag += [True] * len(cyc)
@@ -317,13 +318,16 @@ def _run_phase(model, data, *, terms, loss_fn, steps, batch_size, lr, kl_weight,
 def train_structured_latent(out_dir=None, steps: int | None = None, seed: int = 0, *, config: dict | None = None,
                             motions=None, val_motions=None, data: dict | None = None, val_data: dict | None = None,
                             phase2_fraction: float = PHASE2_FRACTION, log_every: int = 100, max_cycles: int | None = None,
-                            max_windows: int | None = None, cycle_options: dict | None = None, **overrides):
+                            max_windows: int | None = None, cycle_options: dict | None = None, dataset=None,
+                            **overrides):
     """Train the structured latent space; write ``structured_latent.pt`` + ``.json`` into ``out_dir``.
 
     steps: total optimiser steps (default :data:`DEFAULT_STEPS`), phase 2 gets ``phase2_fraction``.
     config: network config (default :data:`EMBEDDED_CONFIG`). Data: ``data`` / ``val_data`` from
     :func:`build_anchor_data` (not finalised), else built from ``motions`` / ``val_motions``, else
-    from the synthetic "train" / "val" splits. ``overrides``: any key of :data:`TRAIN_DEFAULTS`.
+    from the "train" / "val" splits of ``dataset`` (the training data the caller hands over:
+    :func:`priors.training.split_motions`); the cycles of the motions are the dataset's
+    ``find_cycles`` (without a dataset, fixed-duration windows only). ``overrides``: any key of :data:`TRAIN_DEFAULTS`.
     ``out_dir=None`` writes nothing. Returns (model in eval mode, record).
     """
     from priors import training
@@ -339,17 +343,17 @@ def train_structured_latent(out_dir=None, steps: int | None = None, seed: int = 
     steps2 = max(1, int(round(steps * phase2_fraction)))
     steps1 = max(1, steps - steps2)
     build = dict(windows_s=opt["windows_s"], window_stride_s=opt["window_stride_s"], cycle_options=cycle_options,
-                 shape_dim=cfg["shape_dim"], seed=seed)
+                 shape_dim=cfg["shape_dim"], seed=seed, find_cycles=None if dataset is None else dataset.find_cycles)
     t_data = time.perf_counter()
     data_info: dict = {}
     if data is None:
         if motions is None:
-            motions = training.load_split_motions("train")
-            data_info["train_source"] = "benchmark.synthetic.splits.build_split('train')"
+            motions = training.split_motions(dataset, "train")
+            data_info["train_source"] = dataset.source("train")
             if val_motions is None and val_data is None:
                 try:
-                    val_motions = training.load_split_motions("val")
-                    data_info["val_source"] = "benchmark.synthetic.splits.build_split('val')"
+                    val_motions = training.split_motions(dataset, "val")
+                    data_info["val_source"] = dataset.source("val")
                 except Exception as exc:  # recorded; training goes on without validation
                     log.warning("no validation split (%s)", exc)
                     data_info["val_source"] = f"unavailable: {type(exc).__name__}: {exc}"
@@ -424,6 +428,6 @@ def train_structured_latent(out_dir=None, steps: int | None = None, seed: int = 
 
 
 __all__ = [
-    "CHECKPOINT_NAME", "RECORD_NAME", "DEFAULT_STEPS", "PHASE2_FRACTION", "TRAIN_DEFAULTS", "build_anchor_data", "finalise",
+    "RECORD_NAME", "DEFAULT_STEPS", "PHASE2_FRACTION", "TRAIN_DEFAULTS", "build_anchor_data", "finalise",
     "mesh_points", "phase1_losses", "phase2_losses", "evaluate", "train_structured_latent",
 ]

@@ -4,8 +4,9 @@ Three parts (summary: docs/priors.md):
 
 1. :class:`VPoser`: the V02_05 network, layer for layer (so the official keys map one to one).
    Paper size ``hidden=512, latent=32`` has 936,252 parameters.
-2. :func:`load_vposer_checkpoint`: a strict loader for the official Lightning checkpoint
-   (``V02_05/snapshots/*.ckpt``) and for the project's own ``priors/weights/vposer.pt``.
+2. :func:`priors.vposer.checkpoint.load` (``load(path, size) -> (VPoser, CheckpointReport)``): a
+   strict loader for the official Lightning checkpoint (``V02_05/snapshots/*.ckpt``, size "paper")
+   and for the project's own ``priors/weights/vposer.pt`` (size "embedded").
 3. :class:`VPoserSlerp`: the prior adapter of paper 000 section 5.5 ("VPoser+SLERP"): one latent per
    observed frame, decoded at the observed timestamps; the protocol SLERPs the rotations to the
    output timestamps and owns root orientation and translation.
@@ -26,10 +27,12 @@ arm of each joint, which the geodesic term alone does not. Adam, lr 1e-3 with a 
 (``python -m priors.vposer.train --out priors/weights``; record in ``priors/weights/vposer.json``;
 its train losses are measured with dropout on, its validation losses in eval mode).
 
-Beyond the fitting API the adapter provides ``encode_motion`` (per-frame posterior means, for the
-reconstruction table), ``export_decoder`` (ONNX: ``z`` (B, 32) -> ``rotations`` (B, 22, 3, 3),
-identity root; ``python -m benchmark export-onnx vposer-slerp``) and ``paper_network`` (the paper
-size with random weights, for ``python -m benchmark describe vposer-slerp --size paper``).
+Beyond the fitting API the adapter implements the interfaces (:mod:`priors.base`)
+:class:`~priors.base.MotionEncoder` (``encode_motion``: per-frame posterior means, for the
+reconstruction table), :class:`~priors.base.ExportableDecoder` (``export_decoder``, ONNX: ``z`` (B,
+32) -> ``rotations`` (B, 22, 3, 3), identity root; ``python -m benchmark export-onnx vposer-slerp``),
+:class:`~priors.base.PaperNetwork` (``paper_network``: the paper size with random weights, for
+``python -m benchmark describe vposer-slerp --size paper``) and :class:`~priors.base.Trainable`.
 
 VPoser v1.0
 -----------

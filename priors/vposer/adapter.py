@@ -77,12 +77,12 @@ class VPoserSlerp(MotionEncoder, ExportableDecoder, PaperNetwork, Trainable, Pri
         return Decoded(rotations=torch.cat([root, body], dim=2))
 
     @classmethod
-    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False) -> dict:
+    def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False, dataset=None) -> dict:
         """``python -m benchmark train vposer-slerp``: retrain the embedded weights (see train_vposer)."""
         from priors.vposer.train import train_vposer
 
         out = embedded_out_dir(out_dir, DEFAULT_WEIGHTS, overwrite)
-        _, record = train_vposer(out, seed=seed, **({"steps": int(steps)} if steps is not None else {}))
+        _, record = train_vposer(out, seed=seed, dataset=dataset, **({"steps": int(steps)} if steps is not None else {}))
         return record
 
     def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:

@@ -10,8 +10,6 @@ import logging
 import re
 from pathlib import Path
 
-import torch
-
 from benchmark.safe_loading import is_lightning_bookkeeping, torch_load_weights, torch_load_with_stand_ins
 from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.vposer.model import PAPER_CONFIG, VPoser, VPoserV1

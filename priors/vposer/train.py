@@ -58,24 +58,25 @@ def train_vposer(
     frame_every: int = 2,
     max_frames: int = 200_000,
     log_every: int = 200,
+    dataset=None,
 ) -> tuple[VPoser, dict]:
     """Train a VPoser on body poses and write ``vposer.pt`` + ``vposer.json`` into ``out_dir``.
 
     poses / val_poses: (N, 22, 3) or (N, 21, 3) axis-angle; by default every ``frame_every``-th
-    frame of the synthetic "train" split (at most ``max_frames``) and of the "val" split (if it
-    builds). ``out_dir=None`` writes nothing (tests). Returns (trained model in eval mode, record).
+    frame of the "train" split of ``dataset`` (at most ``max_frames``) and of its "val" split (if it
+    builds); ``dataset``: the training data the caller hands over (:func:`priors.training.split_motions`). ``out_dir=None`` writes nothing (tests). Returns (trained model in eval mode, record).
     """
     data_info: dict = {}
     if poses is None:
-        motions = training.load_split_motions("train")
+        motions = training.split_motions(dataset, "train")
         poses = training.pose_frames(motions, every=frame_every, max_frames=max_frames, seed=seed)
-        data_info["train"] = {"source": "benchmark.synthetic.splits.build_split('train')", "motions": len(motions),
+        data_info["train"] = {"source": dataset.source("train"), "motions": len(motions),
                               "frame_every": frame_every, "frames": int(poses.shape[0])}
         if val_poses is None:
             try:
-                val_motions = training.load_split_motions("val")
+                val_motions = training.split_motions(dataset, "val")
                 val_poses = training.pose_frames(val_motions, every=frame_every, max_frames=max_frames // 10, seed=seed)
-                data_info["val"] = {"source": "benchmark.synthetic.splits.build_split('val')", "motions": len(val_motions),
+                data_info["val"] = {"source": dataset.source("val"), "motions": len(val_motions),
                                     "frame_every": frame_every, "frames": int(val_poses.shape[0])}
             except Exception as exc:
                 log.warning("no validation split (%s); training without a validation loss", exc)
@@ -134,6 +135,7 @@ def train_vposer(
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.vposer.train --out priors/weights --steps 15000 --seed 0``: train the embedded weights."""
     from benchmark import argtypes as at
+    from benchmark.synthetic.train_data import SyntheticTrainingData
 
     ap = training.recipe_parser("Train the embedded VPoser on the synthetic training split.", DEFAULT_WEIGHTS, 15000)
     ap.add_argument("--hidden", type=at.positive_int, default=EMBEDDED_CONFIG["hidden"])
@@ -142,7 +144,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frame-every", type=at.positive_int, default=2)
     args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
     _, rec = train_vposer(args.out, steps=args.steps, seed=args.seed, hidden=args.hidden, latent=args.latent,
-                          batch_size=args.batch_size, frame_every=args.frame_every)
+                          batch_size=args.batch_size, frame_every=args.frame_every, dataset=SyntheticTrainingData())
     print({k: rec[k] for k in ("train_wall_s", "final_train", "final_val", "checkpoint_bytes")})
 
 
