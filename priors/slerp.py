@@ -11,7 +11,7 @@ runs as an ordinary row of ``python -m benchmark run inbetween --prior slerp``:
   per-observed-frame variables, set from the observed frames;
 - the :class:`~priors.base.InterpolationBaseline` interface tells the motion protocols (benchmark/protocols/inbetween.py)
   to take these latents and rigid parameters as they are, with no optimisation: the per-frame
-  machinery of the protocol (``benchmark.protocols.completion.body_parameters``) then SLERPs the
+  machinery of the protocol (``benchmark.protocols.fit_state.body_parameters``) then SLERPs the
   rotations and LERPs the translation between the last context frame and the key frame.
 
 No weights, no network, no training (``train_embedded`` returns a record saying so); sizes

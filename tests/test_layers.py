@@ -10,9 +10,10 @@ command; it builds the training data and hands it to the recipe.
 
 Besides: no import loop between packages (a sub-package, or a top-level module, as one node); the
 harness imports only the prior API of ``priors`` (the rest it reaches through
-:mod:`benchmark.registry`); no module imports an underscore name of another module; and no module
-re-exports a name it only imports (import it from its home instead; package ``__init__`` files,
-which are a package's public face, excepted).
+:mod:`benchmark.registry`); a prior's network imports no training code; no module imports an
+underscore name of another module (``from m import _x`` or ``m._x``); no module re-exports a name
+it only imports, and every ``from m import x`` (tests included) takes x from the module that
+defines it (package ``__init__`` files, a package's public face, excepted).
 """
 
 from __future__ import annotations
@@ -165,6 +166,18 @@ def test_the_harness_reaches_priors_through_the_registry():
              for dep, line, _, _ in imports_of(name, file, modules)
              if dep.startswith("priors") and dep not in HARNESS_MAY_IMPORT_PRIORS]
     assert not wrong, "the harness imports a prior directly (use benchmark.registry):\n" + "\n".join(wrong)
+
+
+def test_a_priors_network_imports_no_training_code():
+    """priors/<name>/model.py is the network, pure torch: it imports neither the shared training
+    recipe (priors.training) nor a train module (shared constants live in the core, e.g.
+    benchmark.skeleton.SMPL_LIKE_REST_JOINTS)."""
+    modules = project_modules()
+    wrong = [f"{_where(file, line)}: {name} imports {dep}"
+             for name, file in sorted(modules.items()) if name.startswith("priors.") and name.endswith(".model")
+             for dep, line, _, _ in imports_of(name, file, modules)
+             if dep == "priors.training" or dep.endswith(".train")]
+    assert not wrong, "a network imports training code:\n" + "\n".join(wrong)
 
 
 def package_of(module: str) -> str:

@@ -139,3 +139,34 @@ def test_committed_weights_fit_the_budget():
     assert {p.suffix for p in files} <= {".pt", ".json"}
     total = sum(p.stat().st_size for p in files)
     assert total <= 60_000_000, f"{folder}: {total / 1e6:.2f} MB of weights and records, over the 60 MB budget"
+
+
+class _Dataset:
+    """Training data as the `train` command hands it to a recipe (priors.training, "data")."""
+
+    def split(self, name):
+        return [types.SimpleNamespace(name=f"{name}0", poses=torch.randn(40, 22, 3, generator=torch.Generator().manual_seed(0)) * 0.1)]
+
+    def source(self, name):
+        return f"test dataset {name!r}"
+
+
+def test_a_recipe_trains_on_the_dataset_it_is_handed():
+    """The priors never build their training data (docs/architecture.md, layers): a recipe reads the
+    splits of the dataset its caller passes, records where they came from, and refuses to run
+    without one."""
+    from priors.vposer.train import train_vposer
+
+    assert len(training.split_motions(_Dataset(), "train")) == 1
+    with pytest.raises(ValueError, match="no training data for the 'train' split: pass dataset="):
+        training.split_motions(None, "train")
+    _, record = train_vposer(None, steps=2, dataset=_Dataset(), hidden=16, latent=4, log_every=1)
+    assert record["data"]["train"]["source"] == "test dataset 'train'" and record["data"]["val"]["frames"] == 20
+    with pytest.raises(ValueError, match="no training data"):
+        train_vposer(None, steps=2, hidden=16, latent=4)
+
+
+def test_the_synthetic_training_data_names_its_source_as_the_records_did():
+    from benchmark.synthetic.train_data import SyntheticTrainingData
+
+    assert SyntheticTrainingData().source("train") == "benchmark.synthetic.splits.build_split('train')"

@@ -273,7 +273,7 @@ def test_complete_on_a_motion_file_and_a_bad_input(tmp_path, capsys):
 
 
 # Issue 11's target for a converged no-prior fit (MPJPE <= 40 mm at 10,000 points / 10 fps). The
-# facing search (benchmark.protocols.completion.facing_search, what `complete` uses) turns the
+# facing search (benchmark.protocols.facing.facing_search, what `complete` uses) turns the
 # capture the right way; the schedule that converges the limbs is issue 11's open part, so the
 # MPJPE check is an expected failure until it lands (measured: 38-72 mm per sequence at 60 steps).
 FITS_MPJPE_TARGET_MM = 40.0

@@ -6,7 +6,7 @@ motion's own shape, fixed (never optimised).
 
 Each prior with an encoder (``has_encoder`` and ``encode_motion``) encodes the clean motion (local
 rotations, root included, translation, timestamps from the window start: the posterior mean) and
-its latents are decoded at the same 30 fps frames (:func:`benchmark.protocols.completion.body_parameters`:
+its latents are decoded at the same 30 fps frames (:func:`benchmark.protocols.fit_state.body_parameters`:
 per-frame, fixed-window and continuous priors alike). What the prior does not encode comes from the
 ground truth: root orientation (per frame: the ground-truth root), translation (per frame: the
 ground-truth translation); a heading-normalised decoder gets the mean yaw between the ground-truth
