@@ -17,8 +17,10 @@ from priors.motion_dvae.checkpoint import load_official
 from priors.motion_dvae.model import (
     EMBEDDED_CONFIG,
     PAPER_CONFIG,
-    STATE_DIM,
     MotionDVAE,
+)
+from priors.motion_dvae.states import (
+    STATE_DIM,
     body_points,
     canonical_poses,
     canonicalise,

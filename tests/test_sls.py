@@ -10,7 +10,7 @@ import torch
 
 from benchmark.catalog import get_profile, load_table_spec
 from benchmark.motion import Motion
-from benchmark.protocols import sls
+from benchmark.protocols import sls, sls_cycles, sls_data, sls_fit
 from benchmark.work_units import grid_cells, plan_units
 from benchmark.rotations import axis_angle_to_matrix
 from priors.base import AnchorDecoder, Decoded, PriorAdapter, WindowSpec
@@ -69,7 +69,7 @@ def _unit(spec, prior, code, ids, profile=TINY_PROFILE, seed=0):
 # --------------------------------------------------------------------------- cycles and anchors
 def test_fallback_cutter_finds_the_period():
     m = handmade_motion(seconds=4.0, period=PERIOD)
-    cycles = sls.fallback_cycles(m, 0.3, 3.0, max_cycles=4)
+    cycles = sls_cycles.fallback_cycles(m, 0.3, 3.0, max_cycles=4)
     assert 2 <= len(cycles) <= 4
     for (a, b), (c, _) in zip(cycles, cycles[1:]):
         assert c == pytest.approx(b)  # contiguous, never overlapping
@@ -77,14 +77,14 @@ def test_fallback_cutter_finds_the_period():
         assert b - a == pytest.approx(PERIOD, abs=0.021)  # frame-quantised at 50 fps
     still = handmade_motion(seconds=2.0)
     still = Motion(poses=torch.zeros_like(still.poses), trans=still.trans, timestamps=still.timestamps)
-    assert sls.fallback_cycles(still, 0.3, 3.0) == []
+    assert sls_cycles.fallback_cycles(still, 0.3, 3.0) == []
 
 
 def test_fallback_is_used_without_the_generator_cutter(monkeypatch):
     import sys
 
     monkeypatch.setitem(sys.modules, "benchmark.synthetic.cycles", None)  # import fails
-    cycles, cutter = sls.cut_cycles([handmade_motion(seconds=4.0)], 100, 0.3, 3.0, per_motion=2)
+    cycles, cutter = sls_cycles.cut_cycles([handmade_motion(seconds=4.0)], 100, 0.3, 3.0, per_motion=2)
     assert cutter.startswith("sls.fallback_cycles") and len(cycles[0]) == 2
     for w in cycles[0]:
         assert w.num_frames == 100 and float(w.timestamps[0]) == 0.0
@@ -112,15 +112,15 @@ def test_cycle_becomes_100_aligned_anchors(cycle_motions):
 
 
 def test_observed_anchor_sets():
-    assert (sls.observed_anchors(100, 5) + 1).tolist() == [20, 40, 60, 80, 100]
-    assert (sls.observed_anchors(100, 20) + 1).tolist() == list(range(5, 101, 5))
-    assert sls.observed_anchors(100, 100).tolist() == list(range(100))
+    assert (sls_data.observed_anchors(100, 5) + 1).tolist() == [20, 40, 60, 80, 100]
+    assert (sls_data.observed_anchors(100, 20) + 1).tolist() == list(range(5, 101, 5))
+    assert sls_data.observed_anchors(100, 100).tolist() == list(range(100))
     with pytest.raises(ValueError, match="divide"):
-        sls.observed_anchors(100, 7)
+        sls_data.observed_anchors(100, 7)
     spec = load_table_spec("sls")
     assert [c["sweep"] for c in grid_cells(spec)] == ["p0", "p50", "p100", "p1000", "p10000", "f5", "f20", "f100"]
     assert spec["paper"]["columns"] == spec["grid"]["sweep"]
-    assert sls.sweep_rule(spec, "p0") == (0, 100) and sls.sweep_rule(spec, "f5") == (None, 5)
+    assert sls_data.sweep_rule(spec, "p0") == (0, 100) and sls_data.sweep_rule(spec, "f5") == (None, 5)
 
 
 def test_each_sweep_observes_what_it_says(source, cycle_motions, anny_body):
@@ -131,26 +131,26 @@ def test_each_sweep_observes_what_it_says(source, cycle_motions, anny_body):
     assert torch.equal(data.landmarks, data.gt_landmarks)
     lm_idx = anny_body.landmark_indices
     assert data.landmarks.shape == (1, 100, 16, 3) and lm_idx.numel() == 16
-    p0 = sls.observe(data, spec, "p0", 0, ids)
+    p0 = sls_data.observe(data, spec, "p0", 0, ids)
     assert p0.points is None and p0.index.tolist() == list(range(100))  # landmarks only
-    p50 = sls.observe(data, spec, "p50", 0, ids)
+    p50 = sls_data.observe(data, spec, "p50", 0, ids)
     assert p50.points.shape == (1, 100, 50, 3)
-    f5 = sls.observe(data, spec, "f5", 0, ids)
+    f5 = sls_data.observe(data, spec, "f5", 0, ids)
     assert (f5.index + 1).tolist() == [20, 40, 60, 80, 100]
     assert torch.equal(f5.points, data.scans.points[:, f5.index])  # all points of the observed anchors
     assert torch.equal(f5.landmarks, data.landmarks[:, f5.index])
     assert torch.equal(f5.timestamps, data.anchor_t[:, f5.index])
     # the observation depends on (seed, cell, ids) only, never on the prior
-    assert sls.observe(data, spec, "p50", 0, ids).fingerprint == p50.fingerprint
+    assert sls_data.observe(data, spec, "p50", 0, ids).fingerprint == p50.fingerprint
     assert len({p0.fingerprint, p50.fingerprint, f5.fingerprint}) == 3
-    assert sls.observe(data, spec, "p50", 1, ids).fingerprint != p50.fingerprint
+    assert sls_data.observe(data, spec, "p50", 1, ids).fingerprint != p50.fingerprint
     # the evaluation scan is another sample of the same meshes
     assert not torch.equal(data.eval.gt_points, data.scans.points)
 
 
 # --------------------------------------------------------------------------- adaptive weights
 def test_adaptive_weights_move_and_stay_positive():
-    w = sls.AdaptiveWeights(["dense", "mocap"], batch=2, every=1)
+    w = sls_fit.AdaptiveWeights(["dense", "mocap"], batch=2, every=1)
     assert w.due(0) and torch.equal(w.w, torch.ones(2, 2))
     w.update(torch.tensor([[10.0, 10.0], [4.0, 4.0]]), torch.tensor([[1.0, 2.0], [8.0, 2.0]]))
     assert (w.w > 0).all() and torch.allclose(w.w.sum(0), torch.full((2,), 2.0, dtype=torch.float64))
@@ -158,7 +158,7 @@ def test_adaptive_weights_move_and_stay_positive():
     assert torch.allclose(w.w[:, 1], torch.ones(2, dtype=torch.float64))  # equal gradients, same rates
     w.update(torch.tensor([[1.0, 1.0], [4.0, 4.0]]), torch.tensor([[1.0, 1.0], [1.0, 1.0]]))
     assert w.w[1, 1] > w.w[0, 1]  # the slower-decreasing term gains weight (GradNorm's r^alpha)
-    assert not sls.AdaptiveWeights(["mocap"], batch=1).due(0)  # one term: weight fixed at 1
+    assert not sls_fit.AdaptiveWeights(["mocap"], batch=1).due(0)  # one term: weight fixed at 1
 
 
 def test_weights_adapt_during_a_fit(source, cycle_motions, anny_body):
@@ -167,9 +167,9 @@ def test_weights_adapt_during_a_fit(source, cycle_motions, anny_body):
     ids = sorted(cycle_motions)[:1]
     spec = tiny_spec()
     data = source.unit_data(ids)
-    obs = sls.observe(data, spec, "f5", 0, ids)
+    obs = sls_data.observe(data, spec, "f5", 0, ids)
     objective = {**spec["objective"], "adaptive": {**spec["objective"]["adaptive"], "every": 2}}
-    state, info = sls.fit_sls(make_adapter("no-prior"), anny_body, obs, data.anchor_t, 5, objective,
+    state, info = sls_fit.fit_sls(make_adapter("no-prior"), anny_body, obs, data.anchor_t, 5, objective,
                               torch.Generator().manual_seed(0), "cpu", loss_vertices=1000)
     assert info["terms"] == ["dense", "mocap"]
     w = torch.tensor([info["weights"]["dense"], info["weights"]["mocap"]])
@@ -209,8 +209,8 @@ def test_fit_is_deterministic(source, cycle_motions, anny_body):
     data = source.unit_data(ids)
     runs = []
     for _ in range(2):
-        obs = sls.observe(data, spec, "p50", 0, ids)
-        state, info = sls.fit_sls(make_adapter("vposer-slerp"), anny_body, obs, data.anchor_t, 2, spec["objective"],
+        obs = sls_data.observe(data, spec, "p50", 0, ids)
+        state, info = sls_fit.fit_sls(make_adapter("vposer-slerp"), anny_body, obs, data.anchor_t, 2, spec["objective"],
                                   torch.Generator().manual_seed(7), "cpu", loss_vertices=1000)
         runs.append((obs.fingerprint, [p.detach().clone() for p in state.parameters()], info["history"]))
     (fa, pa, ha), (fb, pb, hb) = runs
@@ -256,14 +256,14 @@ def test_anchor_decoder_path_fits_timestamps(source, cycle_motions, anny_body):
     adapter = AnchorPrior()
     assert sls.na_reason(spec, adapter) is None
     data = source.unit_data(ids)
-    obs = sls.observe(data, spec, "f20", 0, ids)
-    state, info = sls.fit_sls(adapter, anny_body, obs, data.anchor_t, 15, spec["objective"],
+    obs = sls_data.observe(data, spec, "f20", 0, ids)
+    state, info = sls_fit.fit_sls(adapter, anny_body, obs, data.anchor_t, 15, spec["objective"],
                               torch.Generator().manual_seed(0), "cpu", loss_vertices=1000)
     assert info["terms"] == ["dense", "mocap", "time"]
     hist = info["history"]
     assert hist[-1]["time"] < hist[0]["time"]  # the decoded timestamps move toward the observed ones
     assert all(w > 0 for w in info["weights"]["time"])
-    rot, trans, tau_hat = sls.decode_anchors(state, data.anchor_t, None)
+    rot, trans, tau_hat = sls_fit.decode_anchors(state, data.anchor_t, None)
     assert rot.shape == (1, 100, 22, 3, 3) and trans.shape == (1, 100, 3) and tau_hat.shape == (1, 100)
     # the free heading and offset sit on top of the decoded anchors
     assert torch.allclose(trans.detach(), state.offset.detach()[:, None].expand(1, 100, 3))

@@ -1,7 +1,8 @@
 """The project's own synthetic motion data: a procedural, seeded motion generator and its splits.
 
 - :mod:`~benchmark.synthetic.actions`: the actions (walking, running, boxing, kicking, a cartwheel,
-  ...) as smooth joint-angle curves of a phase; :mod:`~benchmark.synthetic.posing` turns
+  ...) as smooth joint-angle curves of a phase (the gaits in :mod:`~benchmark.synthetic.gaits`, boxing
+  and kicks in :mod:`~benchmark.synthetic.fighting`); :mod:`~benchmark.synthetic.posing` turns
   anatomical angles into SMPL-22 local rotations.
 - :mod:`~benchmark.synthetic.generator`: a plan of actions -> a sequence queryable at any
   timestamp (cross-faded transitions) -> :class:`~benchmark.motion.Motion`.

@@ -140,3 +140,13 @@ def window(phase, start: float, end: float, ramp: float) -> torch.Tensor:
 def deg(x) -> torch.Tensor:
     """Degrees -> radians (tensor)."""
     return _as_tensor(x) * (math.pi / 180.0)
+
+
+def event_weights(t: torch.Tensor, events: list, profile: KeyframeCurve) -> list[torch.Tensor]:
+    """Per event (start, duration, ...): its profile over t (T,), 0 outside [start, start + duration]."""
+    out = []
+    for ev in events:
+        u = (t - ev["start"]) / ev["duration"]
+        inside = (u > 0) & (u < 1)
+        out.append(torch.where(inside, profile(u.clamp(0, 1)), torch.zeros_like(u)))
+    return out

@@ -16,9 +16,11 @@ from priors.base import (
 )
 from priors.motion_dvae import checkpoint
 from priors.motion_dvae.model import (
-    FPS,
     MotionDVAE,
     PAPER_CONFIG,
+)
+from priors.motion_dvae.states import (
+    FPS,
     STATE_DIM,
     body_points,
     canonicalise,

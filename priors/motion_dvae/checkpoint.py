@@ -11,7 +11,8 @@ import torch
 
 from benchmark.safe_loading import STATE_DICT_FIX, UnsafeFileError, torch_load_weights
 from priors.checkpoints import CheckpointReport, check_size, load_state_strict
-from priors.motion_dvae.model import FPS, MotionDVAE, PAPER_CONFIG
+from priors.motion_dvae.model import MotionDVAE, PAPER_CONFIG
+from priors.motion_dvae.states import FPS
 
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "motion_dvae.pt"

@@ -17,15 +17,17 @@ import torch
 from benchmark.skeleton import NUM_JOINTS
 from priors import training
 from priors.motion_dvae.model import (
-    DENOISE_SIGMA_RANGE,
     EMBEDDED_CONFIG,
-    FPS,
     KL_ANNEAL_FRACTION,
     MotionDVAE,
     NOISE_PRIOR_SCALE_M,
     NOISE_PRIOR_SHAPE,
     PAPER_CONFIG,
     POINT_WEIGHT,
+)
+from priors.motion_dvae.states import (
+    DENOISE_SIGMA_RANGE,
+    FPS,
     STATE_DIM,
     body_points,
     canonical_poses,

@@ -1,0 +1,119 @@
+"""The one-cycle windows of the ``sls`` protocol: cutting the test motions into cycles of anchor
+frames and aligning each cycle (the data rules: :mod:`benchmark.protocols.sls`).
+
+Fallback cycle cutter (:func:`fallback_cycles`, for data without the generator's phase): the pose
+signal x(t) = the local rotation matrices of joints 1..21 (the root's heading excluded); the
+period L is the smallest lag in [cycle_min_s, min(cycle_max_s, span / 2)] that is a local minimum
+of the normalised mean squared difference d(L) = mean_t |x(t + L) - x(t)|^2 / (2 var x) below
+``d_min + 0.2 (d_max - d_min)`` (YIN-style, so the fundamental wins over its multiples), and the
+motion must be periodic (d(L) < 0.5). Cycle boundaries are the local minima of the projection of x
+on its first principal direction that are the lowest within +-0.3 L (interior frames only);
+consecutive boundaries 0.85 L to 1.15 L apart whose poses agree (|x(t1) - x(t0)|^2 / (2 var x) <=
+max(0.1, 3 d(L))) make a cycle. Frame-quantised (20 ms at 50 fps).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import roma
+import torch
+
+from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+
+
+def fallback_cycles(motion, min_s: float = 0.3, max_s: float = 3.0, max_cycles: int | None = None) -> list[tuple[float, float]]:
+    """One-cycle windows [(t0, t1), ...] (seconds, the motion's own clock) found from the pose
+    signal alone (see the module docstring). Empty when the motion is not periodic."""
+    poses = torch.as_tensor(motion.poses, dtype=torch.float64)
+    ts = torch.as_tensor(motion.timestamps, dtype=torch.float64)
+    T = poses.shape[0]
+    if T < 4:
+        return []
+    fps = (T - 1) / float(ts[-1] - ts[0])
+    x = axis_angle_to_matrix(poses[:, 1:]).reshape(T, -1)
+    x = x - x.mean(0)
+    var = float(x.square().sum(1).mean())
+    if var < 1e-8:
+        return []
+    lo = max(1, math.ceil(min_s * fps - 1e-9))
+    hi = min(int(math.floor(max_s * fps + 1e-9)), T // 2)
+    if hi < lo + 2:
+        return []
+    lags = torch.arange(lo - 1, hi + 2)
+    d = torch.stack([(x[int(L):] - x[: T - int(L)]).square().sum(1).mean() for L in lags.clamp_min(1)]) / (2 * var)
+    inner = d[1:-1]
+    local = (inner <= d[:-2]) & (inner <= d[2:])
+    thr = float(inner.min()) + 0.2 * float(inner.max() - inner.min())
+    cand = torch.nonzero(local & (inner <= thr)).flatten()
+    if cand.numel() == 0 or float(inner[cand[0]]) > 0.5:
+        return []
+    L = int(lags[1:-1][cand[0]])
+    u = x @ torch.linalg.svd(x, full_matrices=False).Vh[0]
+    w = max(1, int(round(0.3 * L)))
+    padded = torch.nn.functional.pad(u[None, None], (w, w), mode="replicate")[0, 0]
+    is_min = u <= padded.unfold(0, 2 * w + 1, 1).amin(1)
+    events = []
+    for i in torch.nonzero(is_min).flatten().tolist():
+        if i == 0 or i == T - 1 or u[i] > u[i - 1] or u[i] > u[i + 1]:  # an end of the motion, not a minimum
+            continue
+        if not events or i - events[-1] >= 0.5 * L:
+            events.append(i)
+    cycles = []
+    for a, b in zip(events, events[1:]):
+        dur = float(ts[b] - ts[a])
+        closes = float((x[b] - x[a]).square().sum()) / (2 * var) <= max(0.1, 3 * float(inner[cand[0]]))
+        if 0.85 * L <= b - a <= 1.15 * L and closes and min_s - 1e-9 <= dur <= max_s + 1e-9:
+            cycles.append((float(ts[a]), float(ts[b])))
+            if max_cycles is not None and len(cycles) >= max_cycles:
+                break
+    return cycles
+
+
+def cut_cycles(motions: list, anchors: int, min_s: float, max_s: float, per_motion: int,
+               gait_starts=(0.0,)) -> tuple[list[list], str]:
+    """Per motion, up to ``per_motion`` one-cycle Motions of ``anchors`` frames (timestamps 0 .. D,
+    the source's world frame, ``meta["cycle"]`` with the cycle's start/end in the source's time);
+    and the name of the cutter used.
+
+    ``benchmark.synthetic.cycles.cycle_windows`` (the generator's phase; cycles start at the phase
+    offsets ``gait_starts``, default the left foot strike only, so a motion's cycles never overlap;
+    a seeded (seed 0) subset of ``per_motion`` when there are more) when importable, else
+    :func:`fallback_cycles` (the first ``per_motion`` cycles) resampled here.
+    """
+    try:
+        from benchmark.synthetic.cycles import cycle_windows
+    except ImportError:
+        cycle_windows = None
+    out: list[list] = [[] for _ in motions]
+    if cycle_windows is None:
+        for k, m in enumerate(motions):
+            for t0, t1 in fallback_cycles(m, min_s, max_s, per_motion):
+                tau = torch.linspace(0.0, t1 - t0, anchors, dtype=torch.float64)
+                w = m.resample(t0 + tau)
+                meta = {**dict(m.meta), "cycle": {"start": t0, "end": t1, "kind": "fallback", "motion_index": k,
+                                                  "source": m.source}}
+                out[k].append(dataclasses.replace(w, timestamps=tau, meta=meta))
+        return out, "sls.fallback_cycles (pose-signal period and principal-component minima)"
+    windows = cycle_windows(motions, anchors=anchors, min_s=min_s, max_s=max_s, gait_starts=tuple(gait_starts),
+                            max_per_motion=per_motion, seed=0)
+    for w in windows:
+        out[int(w.meta["cycle"]["motion_index"])].append(w)
+    return out, "benchmark.synthetic.cycles.cycle_windows"
+
+
+def align_first_anchor(m):
+    """The cycle Motion rigidly moved so its first anchor's root faces +z with its root translation
+    at x = z = 0 (height kept): a yaw about +y applied to the whole motion (world-rigid)."""
+    poses, trans = m.poses.double(), m.trans.double()
+    R = axis_angle_to_matrix(poses[:, 0])
+    fwd = R[0, :, 2]
+    yaw = -math.atan2(float(fwd[0]), float(fwd[2]))
+    Y = roma.rotvec_to_rotmat(torch.tensor([0.0, yaw, 0.0], dtype=torch.float64))
+    poses = poses.clone()
+    poses[:, 0] = matrix_to_axis_angle(Y @ R)
+    trans = (trans - trans[0]) @ Y.T
+    trans[:, 1] += float(m.trans[0, 1])
+    return dataclasses.replace(m, poses=poses.float(), trans=trans.float())
+

@@ -1,0 +1,185 @@
+"""The ``sls`` fit: decoding the anchors, the objective with its adaptive (GradNorm) weights and the
+optimisation of one batch against its observation (the rules: :mod:`benchmark.protocols.sls`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from benchmark.metrics.static_chamfer import StaticChamfer
+from benchmark.protocols.facing import facing_search
+from benchmark.protocols.fit_state import (FitState, apply_free_rigid, body_parameters, init_state, optimise,
+                                           parameter_groups)
+from benchmark.protocols.sls_data import Observation
+from priors.base import AnchorDecoder, FitBatch, PriorAdapter
+
+# Term scales: D in mm (x1e3 of metres), M in cm^2 (x1e4 of m^2), T in (10 ms)^2 (x1e4 of s^2).
+DENSE_SCALE, MOCAP_SCALE, TIME_SCALE = 1e3, 1e4, 1e4
+GRAD_FLOOR = 1e-12
+
+
+def uses_anchor_decoder(adapter) -> bool:
+    """Whether the adapter decodes its anchors itself (an :class:`~priors.base.AnchorDecoder`)."""
+    return isinstance(adapter, AnchorDecoder)
+
+
+def _rigid(state: FitState, rot: torch.Tensor, trans: torch.Tensor | None, timestamps: torch.Tensor):
+    """The free rigid parameters of ``state`` applied to decoded (rot, trans) at ``timestamps``."""
+    rot, trans = apply_free_rigid(state, rot, trans, timestamps)
+    if trans is None:
+        raise ValueError(f"prior {state.adapter.name!r}: decode_anchors gave no translation and the protocol has none free")
+    return rot, trans
+
+
+def decode_anchors(state: FitState, anchor_t: torch.Tensor, index: torch.Tensor | None):
+    """Rotations (B, k, 22, 3, 3), translation (B, k, 3) and decoded timestamps (B, k) or None at
+    the anchors ``index`` (None: all). ``anchor_t`` (B, A) are the anchors' true timestamps."""
+    a = state.adapter
+    if uses_anchor_decoder(a):
+        shape = state.shape() if a.shape_conditioned else None
+        dec, tau_hat = a.decode_anchors(state.latents, shape)
+        B, A = anchor_t.shape
+        if dec.rotations.shape[:3] != (B, A, 22) or tuple(tau_hat.shape) != (B, A):
+            raise ValueError(f"prior {a.name!r}: decode_anchors gave rotations {tuple(dec.rotations.shape)} and tau_hat "
+                             f"{tuple(tau_hat.shape)}, expected ({B}, {A}, 22, 3, 3) and ({B}, {A})")
+        rot, trans = dec.rotations, dec.trans
+        if index is not None:
+            rot, tau_hat = rot[:, index], tau_hat[:, index]
+            trans = None if trans is None else trans[:, index]
+        t = anchor_t if index is None else anchor_t[:, index]
+        rot, trans = _rigid(state, rot, trans, t)
+        return rot, trans, tau_hat
+    if index is not None and torch.equal(anchor_t[:, index], state.obs_t):
+        rot, trans = body_parameters(state, state.obs_t, observed=True)
+    else:
+        rot, trans = body_parameters(state, anchor_t if index is None else anchor_t[:, index])
+    return rot, trans, None
+
+
+# ============================================================================ fit
+@dataclass
+class AdaptiveWeights:
+    """Closed-form GradNorm weights per (term, sequence); see :mod:`benchmark.protocols.sls`."""
+
+    active: list
+    batch: int
+    alpha: float = 1.5
+    smoothing: float = 0.5
+    every: int = 10
+
+    def __post_init__(self):
+        self.w = torch.ones(len(self.active), self.batch, dtype=torch.float64)
+        self.initial: torch.Tensor | None = None
+
+    def due(self, step: int) -> bool:
+        return len(self.active) > 1 and step % max(self.every, 1) == 0
+
+    def update(self, losses: torch.Tensor, grad_norms: torch.Tensor) -> None:
+        """losses, grad_norms: (n_terms, B) unweighted term values and their latent-gradient norms."""
+        losses = losses.detach().double().cpu()
+        grad_norms = grad_norms.detach().double().cpu()
+        if self.initial is None:
+            self.initial = losses.clamp_min(1e-12)
+        ratio = (losses / self.initial).clamp_min(1e-12)
+        r = ratio / ratio.mean(0, keepdim=True)
+        target = r.pow(self.alpha) / grad_norms.clamp_min(GRAD_FLOOR)
+        target = len(self.active) * target / target.sum(0, keepdim=True)
+        self.w = (1 - self.smoothing) * self.w + self.smoothing * target
+
+
+def _latent_grad_norms(terms: list[torch.Tensor], latents: list[torch.Tensor]) -> torch.Tensor:
+    """(n_terms, B): per sequence, |d term_b / d latents_b| over all latent tensors."""
+    B = terms[0].shape[0]
+    rows = []
+    for term in terms:
+        grads = torch.autograd.grad(term.sum(), latents, retain_graph=True, allow_unused=True)
+        sq = torch.zeros(B, dtype=torch.float64, device=term.device)
+        for g in grads:
+            if g is not None:
+                sq = sq + g.reshape(B, -1).double().square().sum(1)
+        rows.append(sq.sqrt())
+    return torch.stack(rows)
+
+
+def active_terms(adapter, obs: Observation, objective: dict) -> list[str]:
+    terms = []
+    if obs.points is not None:
+        terms.append("dense")
+    terms.append("mocap")
+    if uses_anchor_decoder(adapter) and objective.get("time_term", True):
+        terms.append("time")
+    return terms
+
+
+def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tensor, steps: int, objective: dict,
+            generator: torch.Generator, device, loss_vertices: int | None = None) -> tuple[FitState, dict]:
+    """Optimise one batch against its observation (see :mod:`benchmark.protocols.sls`)."""
+    lr = float(objective["lr"])
+    lam = float(objective["lambda_prior"])
+    ad = objective.get("adaptive", {}) or {}
+    lr_final = float(objective.get("lr_final_fraction", 0.1))
+    B, n = obs.landmarks.shape[:2]
+    idx = obs.index.to(device)
+    anchor_t = anchor_t.to(device)
+    obs_t = obs.timestamps.to(device)
+    lm = obs.landmarks.to(device)
+    pts = None if obs.points is None else obs.points.to(device)
+    cap = objective.get("init_scan_points")
+    init_pts = lm if pts is None else torch.cat([pts if cap in (None, "all") else pts[:, :, : int(cap)], lm], dim=2)
+    batch = FitBatch(points=init_pts, lengths=torch.full((B, n), init_pts.shape[2], dtype=torch.long, device=device),
+                     timestamps=obs_t, window_s=float(anchor_t[:, -1].max()), output_timestamps=anchor_t)
+    facing = str(objective.get("facing", "heading8"))
+    latent_init = str(objective.get("latent_init", "sample"))  # v3: "mean" (as table1 v3)
+    if facing == "search":
+        state, _ = facing_search(adapter, body, batch, generator, device, lr, lam, latent_init=latent_init)
+    elif facing in ("heading8", "aligned"):  # aligned: start facing +z, as the data rules align every sequence
+        state = init_state(adapter, body, batch, generator, device, search_heading=facing == "heading8",
+                           latent_init=latent_init)
+    else:
+        raise ValueError(f"sls: unknown objective.facing {facing!r}; choose heading8 (protocol v1), aligned or search")
+    subset = body.loss_vertex_indices(loss_vertices)
+    lm_idx = body.landmark_indices.to(device)
+    skin_idx = lm_idx if pts is None else (None if subset is None else torch.cat([subset.to(device), lm_idx]))
+    terms_used = active_terms(adapter, obs, objective)
+    weights = AdaptiveWeights(terms_used, B, alpha=float(ad.get("alpha", 1.5)), smoothing=float(ad.get("smoothing", 0.5)),
+                              every=int(ad.get("every", 10)))
+    latents = list(state.latents.values())
+    # the observed points never move: their search structures are built once (same values as chamfer_loss)
+    dense = None if pts is None else StaticChamfer(pts.flatten(0, 1))
+
+    trace = []  # (B,) the unweighted sum of the active data terms at every step (fit diagnostics)
+
+    def step_loss(step):
+        rot, trans, tau_hat = decode_anchors(state, anchor_t, idx)
+        rest = body.prepare(state.shape())
+        verts = body.skin(rest, rot, trans, vertex_indices=skin_idx).vertices  # (B, n, K, 3)
+        pred_lm = verts[:, :, -lm_idx.numel():] if skin_idx is not None else verts.index_select(2, lm_idx)
+        terms = {"mocap": (pred_lm - lm).square().sum(-1).mean((1, 2)) * MOCAP_SCALE}
+        if pts is not None:
+            v = verts[:, :, : verts.shape[2] - lm_idx.numel()] if skin_idx is not None else verts
+            terms["dense"] = dense(v.flatten(0, 1)).view(B, n).mean(1) * DENSE_SCALE
+        if "time" in terms_used:
+            terms["time"] = (tau_hat.double() - obs_t).square().mean(1).to(verts.dtype) * TIME_SCALE
+        values = [terms[k] for k in terms_used]
+        trace.append(sum(v.detach() for v in values))
+        if weights.due(step):
+            weights.update(torch.stack([v.detach() for v in values]), _latent_grad_norms(values, latents))
+        w = weights.w.to(device=device, dtype=verts.dtype)
+        data = sum(w[i] * values[i] for i in range(len(values)))
+        prior = adapter.prior_term(state.latents)
+
+        def log():
+            entry = {"prior": float(prior.detach().mean())}
+            for i, k in enumerate(terms_used):
+                entry[k] = float(values[i].detach().mean())
+                entry[f"w_{k}"] = float(weights.w[i].mean())
+            return entry
+
+        return (data + lam * prior).sum(), log
+
+    params = parameter_groups(state, lr, float(objective.get("shape_lr_scale", 1.0)))  # as table1 v2
+    history = optimise(adapter.name, params, steps, lr, lr_final, step_loss)
+    return state, {"history": history, "terms": terms_used, "data_trace": torch.stack(trace) if trace else torch.zeros(0, B),
+                   "weights": {k: weights.w[i].tolist() for i, k in enumerate(terms_used)}}
