@@ -20,5 +20,5 @@ writing, the recipe command line). The baselines are single modules (:mod:`prior
 ``representation.py`` and ``gradnorm.py``.) Imports go one way: model <- checkpoint <- adapter, and
 train imports model and checkpoint; an adapter imports its train module only inside
 ``train_embedded``. Rotation and heading-frame helpers that more than one prior needs live in
-:mod:`benchmark.frames` and :mod:`benchmark.rotations`.
+:mod:`benchmark.core.frames` and :mod:`benchmark.core.rotations`.
 """

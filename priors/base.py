@@ -47,7 +47,7 @@ Minimal example: a complete adapter in one module that passes ``check-prior`` (f
 poses pulled towards the T-pose; ``priors/no_prior.py`` is the same with no pull)::
 
     import torch
-    from benchmark.rotations import matrix_to_sixd, sixd_to_matrix
+    from benchmark.core.rotations import matrix_to_sixd, sixd_to_matrix
     from priors.base import Decoded, FitBatch, PriorAdapter, WindowSpec
 
     class TPosePull(PriorAdapter):
@@ -90,7 +90,7 @@ from typing import TYPE_CHECKING, ClassVar, Literal
 
 import torch
 
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.skeleton import NUM_JOINTS
 
 if TYPE_CHECKING:
     from priors.checkpoints import CheckpointReport

@@ -6,7 +6,7 @@ written by its training recipe), builds the network at the size the file describ
 tensors in with :func:`load_state_strict`, the one strict state-dict loader every format goes
 through: every tensor of the network present with its shape, nothing left over that the format
 does not allow, and an error naming the file and the keys otherwise (never a silent partial load).
-Files are read by :mod:`benchmark.safe_loading` (``torch.load(..., weights_only=True)``) before
+Files are read by :mod:`benchmark.core.safe_loading` (``torch.load(..., weights_only=True)``) before
 anything is built.
 """
 

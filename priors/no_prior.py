@@ -2,7 +2,7 @@
 
 Latents: ``{"pose": (B, n_observed, 21, 6)}``, the local rotations of SMPL joints 1..21 in the
 "interleaved" 6D layout (row-major 3x2, the first two columns of R), initialised at the identity
-(the T-pose). Decoding is Gram-Schmidt (``benchmark.rotations.sixd_to_matrix``); the root is
+(the T-pose). Decoding is Gram-Schmidt (``benchmark.core.rotations.sixd_to_matrix``); the root is
 identity (the protocol owns root orientation and translation) and the prior term is zero. It is
 what VPoser+SLERP would be without VPoser: the protocol's SLERP/LERP fills the other frames.
 
@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import torch
 
-from benchmark.rotations import matrix_to_sixd, sixd_to_matrix
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.rotations import matrix_to_sixd, sixd_to_matrix
+from benchmark.core.skeleton import NUM_JOINTS
 from priors.base import Decoded, FitBatch, MotionEncoder, PriorAdapter, WindowSpec
 
 NUM_BODY_JOINTS = NUM_JOINTS - 1

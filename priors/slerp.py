@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import torch
 
-from benchmark.rotations import matrix_to_sixd
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.rotations import matrix_to_sixd
+from benchmark.core.skeleton import NUM_JOINTS
 from priors.base import InterpolationBaseline, Trainable
 from priors.no_prior import NoPrior
 

@@ -29,8 +29,8 @@ from typing import Callable
 
 import torch
 
-from benchmark.safe_loading import UnsafeFileError, torch_load_weights
-from benchmark.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
+from benchmark.core.safe_loading import UnsafeFileError, torch_load_weights
+from benchmark.core.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +120,7 @@ def fixed_rest_skeleton() -> tuple[torch.Tensor, str]:
     """(22, 3) rest joint positions (metres, pelvis at the origin) and where they come from.
 
     The default embedded Anny body's T-pose joints at its default shape when the body can be built,
-    else :data:`benchmark.skeleton.SMPL_LIKE_REST_JOINTS`. The source string goes into the training record.
+    else :data:`benchmark.core.skeleton.SMPL_LIKE_REST_JOINTS`. The source string goes into the training record.
     """
     try:
         from benchmark.body.anny_body import load_anny_body
@@ -132,7 +132,7 @@ def fixed_rest_skeleton() -> tuple[torch.Tensor, str]:
     except Exception as exc:  # the fallback is documented and recorded
         log.warning("embedded Anny body unavailable (%s: %s); using the SMPL-like fallback skeleton", type(exc).__name__, exc)
         return torch.tensor(SMPL_LIKE_REST_JOINTS, dtype=torch.float32), (
-            f"SMPL-like fallback skeleton (benchmark/skeleton.py SMPL_LIKE_REST_JOINTS); Anny body unavailable: {type(exc).__name__}"
+            f"SMPL-like fallback skeleton (benchmark/core/skeleton.py SMPL_LIKE_REST_JOINTS); Anny body unavailable: {type(exc).__name__}"
         )
 
 
@@ -390,10 +390,10 @@ def embedded_out_dir(out_dir: str | Path | None, default_weights: Path, overwrit
 def recipe_parser(description: str, default_weights: Path, steps: int, min_steps: int = 1):
     """The command line every ``python -m priors.<name>.train`` shares: ``--out`` (default: the folder of
     ``default_weights``), ``--steps`` (at least ``min_steps``), ``--seed``, ``--force``; a recipe adds
-    its own options to it (numbers range-checked with :mod:`benchmark.argtypes`)."""
+    its own options to it (numbers range-checked with :mod:`benchmark.core.argtypes`)."""
     import argparse
 
-    from benchmark import argtypes as at
+    from benchmark.core import argtypes as at
 
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--out", default=str(default_weights.parent), help="output folder (default: %(default)s)")

@@ -12,8 +12,8 @@ import hashlib
 
 import numpy as np
 
-from benchmark.catalog import load_table_spec
-from benchmark.work_units import plan_units
+from benchmark.run.catalog import load_table_spec
+from benchmark.core.work_units import plan_units
 
 PRIORS = ["vposer-slerp", "hmvae", "sequential-primitives"]
 

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from benchmark.compare import compare_tables
-from benchmark.work_units import metric_specs
-from benchmark.writers import write_table
+from benchmark.tools.compare import compare_tables
+from benchmark.core.work_units import metric_specs
+from benchmark.run.writers import write_table
 
 TABLE_TOLERANCES = {"table1": {"chamfer_mm": 1.0, "chamfer_surface_mm": 1.0, "mpjpe_mm": 3.0}}
 TOLERANCE_BY_SUFFIX = {"_mm": 3.0}
@@ -97,7 +97,7 @@ def _within_cross_machine(table: str, row: dict) -> bool:
 
 
 def accepted(table: str, row: dict) -> bool:
-    """Whether a comparison row of :func:`benchmark.compare.compare_tables` passes: within the
+    """Whether a comparison row of :func:`benchmark.tools.compare.compare_tables` passes: within the
     absolute tolerance, a chaotic cell's wider one, or the cross-machine relative one."""
     return row.get("ok", True) or _within_chaotic(table, row) or _within_cross_machine(table, row)
 

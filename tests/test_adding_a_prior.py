@@ -4,7 +4,7 @@ through the conformance kit and a shrunk table1 (tests/tiny_run.py), then remove
 drift from what passes here.
 
 The default test puts the package on ``sys.path`` and registers it at run time
-(``benchmark.registry.register``); the ``slow`` one really ``pip install``s it (editable, through its
+(``benchmark.run.registry.register``); the ``slow`` one really ``pip install``s it (editable, through its
 ``pyproject.toml`` entry point) and uninstalls it afterwards."""
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ def forget_module():
 def check_and_run_table1(tmp_path, monkeypatch, capsys):
     """check-prior passes; a tiny table1 has a finite row for the prior."""
     from benchmark.cli import main
-    from benchmark.conformance import check_prior
+    from benchmark.tools.conformance import check_prior
 
     assert check_prior(NAME, steps=2, verbose=True), capsys.readouterr().out
     assert capsys.readouterr().out.rstrip().endswith("PASS")
@@ -83,7 +83,7 @@ def test_the_doc_holds_the_whole_package():
 
 
 def test_walkthrough_registered_at_run_time(tmp_path, monkeypatch, capsys):
-    from benchmark import registry
+    from benchmark.run import registry
 
     pkg = build_package(tmp_path / "tiny-pose-prior")
     monkeypatch.syspath_prepend(str(pkg))
@@ -94,7 +94,7 @@ def test_walkthrough_registered_at_run_time(tmp_path, monkeypatch, capsys):
         # the optional pieces of the example work too: encode_motion round trip shapes, the recipe
         import torch
 
-        from benchmark.registry import make_adapter
+        from benchmark.run.registry import make_adapter
 
         from priors.base import MotionEncoder, Trainable, interfaces_of
 
@@ -161,8 +161,8 @@ def test_the_base_docstring_example_passes_check_prior(tmp_path, monkeypatch, ca
     import textwrap
 
     import priors.base
-    from benchmark import registry
-    from benchmark.conformance import check_prior
+    from benchmark.run import registry
+    from benchmark.tools.conformance import check_prior
 
     doc = priors.base.__doc__
     code = doc.split("Minimal example", 1)[1].split("::\n", 1)[1].split("\nand in your package's", 1)[0]

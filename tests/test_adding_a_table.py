@@ -4,7 +4,7 @@ line is ``# file: PATH``) into a temporary folder, registered, listed and run th
 removed. The doc cannot drift from what passes here.
 
 The default test puts the package on ``sys.path`` and registers the protocol and the table at run
-time (``benchmark.protocols.registry.register``, ``benchmark.catalog.register_table``); the
+time (``benchmark.protocols.registry.register``, ``benchmark.run.catalog.register_table``); the
 ``slow`` one really ``pip install``s it (editable, through its ``pyproject.toml`` entry points) and
 uninstalls it afterwards.
 
@@ -82,7 +82,7 @@ def test_the_doc_holds_the_whole_package():
 
 
 def test_walkthrough_registered_at_run_time(tmp_path, monkeypatch, capsys):
-    from benchmark import catalog
+    from benchmark.run import catalog
     from benchmark.cli import main
     from benchmark.protocols import registry
 
@@ -168,7 +168,7 @@ def test_walkthrough_pip_installed(tmp_path):
 # -- the protocol registry -------------------------------------------------------------------------
 
 def test_the_projects_protocols_are_registered_by_entry_point_and_built_in():
-    from benchmark.catalog import load_table_spec, table_names
+    from benchmark.run.catalog import load_table_spec, table_names
     from benchmark.protocols import registry
     from benchmark.protocols.base import Protocol
 
@@ -197,7 +197,7 @@ def test_stale_package_metadata_falls_back_to_the_built_in_protocols(monkeypatch
 
 def test_unknown_protocol_names_the_close_ones(tmp_path):
     from benchmark.protocols import registry
-    from benchmark.protocols.table_run import table_protocol
+    from benchmark.run.table_run import table_protocol
 
     with pytest.raises(KeyError, match=r"unknown protocol 'sl'\. Did you mean 'sls'\? Registered: completion,"):
         registry.get_protocol_class("sl")
@@ -217,7 +217,7 @@ def test_a_protocol_class_registered_as_a_class_runs_in_the_executor():
     """register(name, cls) with a class object; the executor calls its methods and n/a rule."""
     from benchmark.protocols import registry
     from benchmark.protocols.base import Protocol
-    from benchmark.protocols.table_run import TableExecutor, table_protocol
+    from benchmark.run.table_run import TableExecutor, table_protocol
 
     class Never(Protocol):
         name = "never"

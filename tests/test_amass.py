@@ -6,7 +6,7 @@ import torch
 
 from benchmark.body.lbs import forward_kinematics
 from benchmark.loaders.amass import load_amass
-from benchmark.rotations import axis_angle_to_matrix
+from benchmark.core.rotations import axis_angle_to_matrix
 
 
 def write_amass(path, T=40, width=156, rate_key="mocap_framerate", rate=120.0, gender="female", seed=0, **extra):

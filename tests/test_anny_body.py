@@ -3,7 +3,7 @@
 import roma
 import torch
 
-from benchmark.skeleton import JOINT_INDEX as J
+from benchmark.core.skeleton import JOINT_INDEX as J
 
 
 def _identity(B=1, T=1):

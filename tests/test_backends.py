@@ -18,11 +18,11 @@ from pathlib import Path
 
 import pytest
 
-from benchmark import runner
-from benchmark.backends import BACKENDS, ProcessBackend, RayBackend, affinity_key, longest_first, make_backend, pick_next
-from benchmark.catalog import get_profile, load_table_spec
-from benchmark.protocols.table_run import run_table
-from benchmark.work_units import estimate_cost
+from benchmark.run import runner
+from benchmark.run.backends import BACKENDS, ProcessBackend, RayBackend, affinity_key, longest_first, make_backend, pick_next
+from benchmark.run.catalog import get_profile, load_table_spec
+from benchmark.run.table_run import run_table
+from benchmark.core.work_units import estimate_cost
 from fake_units import FakeExecutor, plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -306,7 +306,7 @@ def test_ray_a_worker_that_cannot_load_the_executor_stops_the_run(ray_runtime, t
 
 
 def test_ray_workers_refuse_other_code_than_the_drivers(ray_runtime, tmp_path, monkeypatch):
-    from benchmark import backends
+    from benchmark.run.backends import ray_backend as backends
 
     monkeypatch.setattr(backends, "code_fingerprint", lambda: "0" * 64)  # the driver now "runs" other code
     with pytest.raises(RuntimeError, match="runs other benchmark code than the driver"):
@@ -335,7 +335,7 @@ def test_ray_is_bit_identical_to_local_on_inbetween(ray_runtime, inbetween_seria
 def test_start_local_interrupt_finish_on_ray(ray_runtime, inbetween_serial, tmp_path, anny_body, monkeypatch):
     """Resume across backends: Ctrl-C a local run after 5 units, finish it on Ray: same table, and
     the 5 stored units are reused, not rerun."""
-    from benchmark.protocols import table_run
+    from benchmark.run import table_run
 
     serial_out, serial_table = inbetween_serial
     real = table_run.TableExecutor

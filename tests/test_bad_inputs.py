@@ -57,7 +57,7 @@ def case(name, where, *expect, multiline=False, needs=None):
 
 
 def motion_file(path: Path, seconds: float = 4.0) -> Path:
-    from benchmark.motion import Motion
+    from benchmark.core.motion import Motion
 
     n = int(seconds * 30) + 1
     g = torch.Generator().manual_seed(0)
@@ -168,7 +168,7 @@ def _(tmp, mp):
     def denied(*a, **k):
         raise PermissionError(errno.EACCES, "Permission denied")
 
-    mp.setattr("benchmark.outdir.tempfile.mkstemp", denied)  # as root, chmod cannot make a folder read-only
+    mp.setattr("benchmark.core.outdir.tempfile.mkstemp", denied)  # as root, chmod cannot make a folder read-only
     return ["run", "table1", "--prior", "no-prior", "--out", str(tmp / "ro")]
 
 
@@ -176,7 +176,7 @@ def _(tmp, mp):
 def _(tmp, mp):
     import shutil
 
-    mp.setattr("benchmark.outdir.shutil.disk_usage", lambda p: shutil._ntuple_diskusage(10 << 30, 10 << 30, 4096))
+    mp.setattr("benchmark.core.outdir.shutil.disk_usage", lambda p: shutil._ntuple_diskusage(10 << 30, 10 << 30, 4096))
     return ["run", "table1", "--prior", "no-prior", "--out", str(tmp / "full")]
 
 
@@ -357,7 +357,7 @@ def _(tmp, mp):
         raise PermissionError(errno.EACCES, "Permission denied")
 
     source = motion_file(tmp / "m.npz")
-    mp.setattr("benchmark.outdir.tempfile.mkstemp", denied)
+    mp.setattr("benchmark.core.outdir.tempfile.mkstemp", denied)
     return ["data", "convert", str(source), "--out", str(tmp / "ro" / "o.npz")]
 
 
@@ -606,15 +606,15 @@ def _pl_no_units(mp):
     def started(*args, **kwargs):
         raise AssertionError("a work unit was planned or run: the bad input was not refused while loading")
 
-    mp.setattr("benchmark.work_units.plan_units", started)
-    mp.setattr("benchmark.runner.run_units", started)
+    mp.setattr("benchmark.core.work_units.plan_units", started)
+    mp.setattr("benchmark.run.runner.run_units", started)
 
 
 def _pl_motion_folder(tmp: Path, n: int = 121, ms: bool = False, trans_scale: float = 1.0, shape=None,
                       body=None) -> Path:
     """``tmp/data/a.npz``: a 4 s, 30 fps harness motion walking 2 m (the Motion constructor checks
     no plausibility: only loaders do)."""
-    from benchmark.motion import Motion
+    from benchmark.core.motion import Motion
 
     ts = torch.arange(n, dtype=torch.float64) / 30 * (1000.0 if ms else 1.0)
     trans = torch.stack([torch.linspace(0, 2, n), torch.full((n,), 0.9), torch.zeros(n)], 1) * trans_scale
@@ -775,7 +775,7 @@ def test_a_refused_scan_folder_leaves_no_table_and_no_unit(tmp_path, monkeypatch
 # ------------------------------------------------------------------------------------------------
 # numeric options, --out and what a command may delete or overwrite
 # (section: options)
-# Numeric options are range-checked when the command line is parsed (benchmark/argtypes.py): an
+# Numeric options are range-checked when the command line is parsed (benchmark/core/argtypes.py): an
 # argparse usage error naming the option, the value and the range, before anything loads. --out is
 # checked before any work; --force replaces only what the command wrote itself; an output never
 # goes into (or around) its input.
@@ -786,7 +786,7 @@ def _op_denied(mp):
     def denied(*a, **k):
         raise PermissionError(errno.EACCES, "Permission denied")
 
-    mp.setattr("benchmark.outdir.tempfile.mkstemp", denied)
+    mp.setattr("benchmark.core.outdir.tempfile.mkstemp", denied)
 
 
 def _op_no_work(mp):
@@ -934,7 +934,7 @@ def _(tmp, mp):
     def measured(*a, **k):
         raise AssertionError("perf measured before checking --out")
 
-    mp.setattr("benchmark.perf.chamfer_compare", measured)
+    mp.setattr("benchmark.tools.perf.chamfer_compare", measured)
     return ["perf", "--only", "chamfer", "--out", str(text_file(tmp / "perf.txt"))]
 
 
@@ -1103,7 +1103,7 @@ def test_an_unexpected_exception_is_one_line_naming_its_type(monkeypatch, capsys
     def boom(args):
         raise AssertionError("internal invariant broken")
 
-    monkeypatch.setattr("benchmark.cli._cmd_list", boom)  # build_parser binds it when main() runs
+    monkeypatch.setattr("benchmark.commands.list.cmd_list", boom)  # build_parser binds it when main() runs
     assert main(["list"]) == 2
     err = capsys.readouterr().err.strip()
     assert err == "error: AssertionError: internal invariant broken (run with --debug for the traceback)"

@@ -7,9 +7,9 @@ import torch
 from benchmark.body.lbs import forward_kinematics
 from benchmark.loaders.bvh import CMU_JOINT_MAP, CMU_UNIT_M, load_bvh
 from benchmark.loaders.bvh_format import BVHSkeleton, cmu_skeleton, parse_bvh, write_bvh
-from benchmark.motion import joint_positions
-from benchmark.rotations import axis_angle_to_matrix, geodesic_distance
-from benchmark.skeleton import JOINT_NAMES, PARENTS
+from benchmark.core.motion import joint_positions
+from benchmark.core.rotations import axis_angle_to_matrix, geodesic_distance
+from benchmark.core.skeleton import JOINT_NAMES, PARENTS
 
 ALWAYS_ZERO = ("LHipJoint", "RHipJoint", "LeftShoulder", "RightShoulder")
 

@@ -3,7 +3,7 @@
 import pytest
 
 from benchmark.cli import main
-from benchmark.registry import get_prior_class, register, unregister
+from benchmark.run.registry import get_prior_class, register, unregister
 
 
 def test_help_and_list(capsys):

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from benchmark.compare import compare_tables, default_tolerance, format_report, main_compare, parse_tolerances
-from benchmark.table_derive import derive_table
+from benchmark.tools.compare import compare_tables, default_tolerance, format_report, main_compare, parse_tolerances
+from benchmark.run.table_derive import derive_table
 from fake_units import FakeExecutor, meta, plan, table_spec
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from benchmark.conformance import check_prior
-from benchmark.registry import register, unregister
+from benchmark.tools.conformance import check_prior
+from benchmark.run.registry import register, unregister
 from priors.base import Decoded
 from priors.no_prior import NoPrior
 

@@ -4,7 +4,7 @@ import torch
 
 from benchmark.loaders.bvh_format import cmu_skeleton, write_bvh
 from benchmark.loaders.convert import convert, detect_format
-from benchmark.motion import Motion
+from benchmark.core.motion import Motion
 
 
 def test_convert_amass_and_bvh_and_refuse_overwrite(tmp_path):

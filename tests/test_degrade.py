@@ -9,8 +9,8 @@ import struct
 import pytest
 import torch
 
-from benchmark.degrade import capture_rate, degrade, fingerprint, temporal_stride
-from benchmark.observations import Landmarks, NoisyJoints, PointCloudSequence
+from benchmark.data.degrade import capture_rate, degrade, fingerprint, temporal_stride
+from benchmark.data.observations import Landmarks, NoisyJoints, PointCloudSequence
 
 
 def labelled_scans(B=2, T=200, N=300, fps=50.0) -> PointCloudSequence:
@@ -96,7 +96,7 @@ def test_spatial_subsets_are_fresh_distinct_and_from_their_frame():
 
 
 def test_short_frames_are_logged(caplog):
-    with caplog.at_level(logging.WARNING, logger="benchmark.degrade"):
+    with caplog.at_level(logging.WARNING, logger="benchmark.data.degrade"):
         degrade(labelled_scans(), 100, 5.0)  # frame 30 (50 points) is kept at 5 fps
     assert "1 of 35 frames have fewer than 100 points" in caplog.text
 

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from benchmark.error_breakdown import FIGURES, format_rows, run_breakdown
-from benchmark.unit_arrays import write_arrays
+from benchmark.tools.error_breakdown import FIGURES, format_rows, run_breakdown
+from benchmark.data.unit_arrays import write_arrays
 
 
 def _unit(tmp_path, name, fit_trans_offset, offset_frames, arm_bend=0.0, spec_hash="h0"):

@@ -1,4 +1,4 @@
-"""ONNX export of prior decoders (benchmark/export_onnx.py), VPoser's export/encode/paper-network
+"""ONNX export of prior decoders (benchmark/tools/export_onnx.py), VPoser's export/encode/paper-network
 additions and no-prior's export refusal and encode_motion."""
 
 import json
@@ -10,7 +10,7 @@ import roma
 import torch
 from torch import nn
 
-from benchmark.export_onnx import (
+from benchmark.tools.export_onnx import (
     NotExportableError,
     ParityError,
     check_parity,

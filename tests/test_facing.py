@@ -9,8 +9,8 @@ import math
 import pytest
 import torch
 
-from benchmark.motion import Motion
-from benchmark.observations import make_scans
+from benchmark.core.motion import Motion
+from benchmark.data.observations import make_scans
 from benchmark.protocols.completion import fit, observation_batch
 from benchmark.protocols.facing import FACING_RULES, facing_search, mean_heading, observed_facing
 
@@ -35,7 +35,7 @@ def _turned_walker(yaw: float, frames: int = 20, fps: float = 10.0) -> Motion:
 
 @pytest.mark.parametrize("yaw", [math.pi, -math.pi / 2])
 def test_facing_search_turns_no_prior_the_right_way(anny_body, yaw):
-    from benchmark.registry import make_adapter
+    from benchmark.run.registry import make_adapter
 
     scans, _ = make_scans(anny_body, [_turned_walker(yaw)], fps=10.0, num_points=300, seed=0)
     out_t = torch.arange(8, dtype=torch.float64)[None] / 4.0
@@ -50,7 +50,7 @@ def test_facing_search_turns_no_prior_the_right_way(anny_body, yaw):
 
 
 def test_fit_refuses_an_unknown_facing_rule(anny_body):
-    from benchmark.registry import make_adapter
+    from benchmark.run.registry import make_adapter
 
     scans, _ = make_scans(anny_body, [_turned_walker(0.0, frames=4)], fps=10.0, num_points=50, seed=0)
     batch = observation_batch(scans, 0.4, torch.zeros(1, 2, dtype=torch.float64), "cpu")
@@ -71,7 +71,7 @@ def test_every_prior_fits_through_the_facing_search(anny_body, prior):
     translation or heading (protocol v2): the facing found on the observation is the prior's
     starting facing, and the full fit continues from it (one prior of each kind in the default
     suite, plus HM-VAE, whose own coarse search chose wrong yaws on the quick sequences)."""
-    from benchmark.registry import make_adapter
+    from benchmark.run.registry import make_adapter
 
     scans, _ = make_scans(anny_body, [_turned_walker(math.pi, frames=8), _turned_walker(0.5, frames=8)],
                           fps=10.0, num_points=200, seed=0)

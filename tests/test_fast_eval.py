@@ -12,7 +12,7 @@ def _unit(body, frames=3, seed=0):
     import roma
 
     from benchmark.protocols.unit_data import UnitData
-    from benchmark.surface_sampling import sample_surface
+    from benchmark.core.surface_sampling import sample_surface
 
     g = torch.Generator().manual_seed(seed)
     rest = body.prepare(body.default_shape(1))

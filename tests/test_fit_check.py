@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from benchmark.fit_check import TARGETS
+from benchmark.tools.fit_check import TARGETS
 
 
 def _cli(*args, timeout=3000):

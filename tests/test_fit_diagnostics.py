@@ -1,4 +1,4 @@
-"""Fit diagnostics (benchmark.fit_diagnostics): per-sequence figures, cell counts, the Markdown
+"""Fit diagnostics (benchmark.core.fit_diagnostics): per-sequence figures, cell counts, the Markdown
 section and flags, and fit-check's verdicts."""
 
 import math
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.fit_check import TARGETS, check_cell
-from benchmark.fit_diagnostics import (
+from benchmark.tools.fit_check import TARGETS, check_cell
+from benchmark.core.fit_diagnostics import (
     BACKWARDS_DEG,
     FLAG,
     cell_diagnostics,
@@ -81,7 +81,7 @@ def test_cell_diagnostics_count_and_flag():
 
 
 def test_markdown_marks_flagged_cells_and_lists_diagnostics():
-    from benchmark.writers import format_markdown
+    from benchmark.run.writers import format_markdown
 
     good, bad = cell_diagnostics([_row()]), cell_diagnostics([_row(backwards=True, root=170.0)])
     cells = [{"points": 100, "chamfer_mm": 20.0, "chamfer_mm_std": 0.0, "diagnostics": good},

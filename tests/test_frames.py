@@ -1,11 +1,11 @@
-"""benchmark.frames: the heading-frame and traceable 6D helpers the priors share."""
+"""benchmark.core.frames: the heading-frame and traceable 6D helpers the priors share."""
 
 import math
 
 import roma
 import torch
 
-from benchmark.frames import (
+from benchmark.core.frames import (
     from_heading_frame,
     ground_origin,
     heading,
@@ -14,7 +14,7 @@ from benchmark.frames import (
     to_heading_frame,
     yaw_matrix,
 )
-from benchmark.rotations import sixd_to_matrix
+from benchmark.core.rotations import sixd_to_matrix
 
 
 def test_yaw_matrix_turns_forward_by_the_angle_and_heading_reads_it_back():

@@ -7,9 +7,9 @@ import pytest
 import roma
 import torch
 
-from benchmark.frames import heading as heading_angle, yaw_matrix
-from benchmark.rotations import sixd_to_matrix
-from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
+from benchmark.core.frames import heading as heading_angle, yaw_matrix
+from benchmark.core.rotations import sixd_to_matrix
+from benchmark.core.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 from priors.base import FitBatch
 from priors.frequency_guided import FrequencyGuidedPrior

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
-from benchmark.rotations import sixd_to_matrix
-from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
+from benchmark.core.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
+from benchmark.core.rotations import sixd_to_matrix
+from benchmark.core.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 from priors.base import FitBatch
 from priors.hmvae import HMVAEPrior, HMVAETrajectoryPrior

@@ -3,7 +3,7 @@
 import roma
 import torch
 
-from benchmark.interpolate import bracket, lerp_frames, slerp_frames
+from benchmark.core.interpolate import bracket, lerp_frames, slerp_frames
 
 
 def _naive_lerp(x, src, dst):

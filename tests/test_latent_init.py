@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from benchmark.catalog import load_table_spec
+from benchmark.run.catalog import load_table_spec
 from benchmark.protocols.fit_state import LATENT_INITS, initial_latents
 from benchmark.protocols.completion_unit import latent_init_rule
 from priors.base import FitBatch
@@ -30,7 +30,7 @@ def test_table1_starts_at_the_prior_mean():
 def test_mean_latents_fit_the_adapter(prior):
     """The mean start has the keys and shapes of the adapter's own start, decodes, draws nothing
     from the generator, and is deterministic; deterministic starts are left as they are."""
-    from benchmark.registry import make_adapter
+    from benchmark.run.registry import make_adapter
 
     adapter = make_adapter(prior)
     batch = _batch()
@@ -65,7 +65,7 @@ def test_mean_latents_fit_the_adapter(prior):
 
 
 def test_unknown_latent_init_is_refused():
-    from benchmark.registry import make_adapter
+    from benchmark.run.registry import make_adapter
 
     with pytest.raises(ValueError, match="latent_init 'mode'"):
         initial_latents(make_adapter("no-prior"), _batch(), torch.Generator(), "mode")

@@ -8,9 +8,10 @@ functions alike (a deferred import is still a dependency). One exception is name
 function of a prior's ``train.py`` is the recipe's command line (``python -m priors.NAME.train``), a
 command; it builds the training data and hands it to the recipe.
 
-Besides: no import loop between packages (a sub-package, or a top-level module, as one node); the
+Besides: no import loop between packages (a sub-package, a top-level module, or a module of a
+layer's package such as ``benchmark.core.motion``, as one node); the
 harness imports only the prior API of ``priors`` (the rest it reaches through
-:mod:`benchmark.registry`); a prior's network imports no training code; no module imports an
+:mod:`benchmark.run.registry`); a prior's network imports no training code; no module imports an
 underscore name of another module (``from m import _x`` or ``m._x``); no module re-exports a name
 it only imports, and every ``from m import x`` (tests included) takes x from the module that
 defines it (package ``__init__`` files, a package's public face, excepted).
@@ -28,38 +29,21 @@ from test_import_cycles import ROOT, find_cycle, project_modules
 LAYERS: dict[str, tuple[str, ...]] = {
     # conventions and pure functions: the skeleton, rotations, frames, interpolation, the Motion
     # type, body models, metrics, and small utilities every layer shares (input checks, safe
-    # loading, argument types, signals, output folders, provenance, fit diagnostics, the work unit
-    # and its result: what the protocols and the runner exchange)
-    "core": (
-        "benchmark", "benchmark.skeleton", "benchmark.rotations", "benchmark.frames", "benchmark.interpolate",
-        "benchmark.surface_sampling", "benchmark.motion_posing", "benchmark.motion", "benchmark.plausibility",
-        "benchmark.safe_loading", "benchmark.argtypes", "benchmark.interrupts", "benchmark.outdir",
-        "benchmark.provenance", "benchmark.fit_diagnostics", "benchmark.work_units", "benchmark.tables",
-        "benchmark.body.*", "benchmark.metrics.*",
-    ),
+    # loading, argument types, signals, output folders, provenance, fit diagnostics, canonical JSON
+    # and atomic files, the work unit and its result: what the protocols and the runner exchange)
+    "core": ("benchmark", "benchmark.core.*", "benchmark.body.*", "benchmark.metrics.*", "benchmark.tables"),
     # data: observations synthesised from motions, their degradation, loaders, the synthetic
     # generator and its splits, a table's test motions, the arrays a unit keeps
-    "data": (
-        "benchmark.observations", "benchmark.degrade", "benchmark.unit_arrays", "benchmark.table_data",
-        "benchmark.loaders.*", "benchmark.synthetic.*",
-    ),
+    "data": ("benchmark.data.*", "benchmark.loaders.*", "benchmark.synthetic.*"),
     # the priors: the adapter API, the shared training recipe, one package per prior
     "priors": ("priors", "priors.*"),
     # the rules of each table: one protocol module per table, the completion fit and its parts
     "protocols": ("benchmark.protocols.*",),
-    # running a table: the runner and its backends, work units, derivation, writing, the prior
-    # registry, the catalog of specs and profiles, the HTML report
-    "run": (
-        "benchmark.protocols.table_run", "benchmark.registry", "benchmark.catalog", "benchmark.backends",
-        "benchmark.runner", "benchmark.table_derive", "benchmark.writers",
-        "benchmark.report.*",
-    ),
-    # the command line: one module per command
-    "commands": (
-        "benchmark.__main__", "benchmark.cli", "benchmark.cli_run", "benchmark.compare", "benchmark.complete",
-        "benchmark.conformance", "benchmark.error_breakdown", "benchmark.export_onnx", "benchmark.fit_check",
-        "benchmark.perf", "benchmark.train_report", "benchmark.report.cli",
-    ),
+    # running a table: the runner and its backends, derivation, writing, the prior registry, the
+    # catalog of specs and profiles; the HTML report; the library code behind some commands (tools)
+    "run": ("benchmark.run.*", "benchmark.tools.*", "benchmark.report.*"),
+    # the command line: one module per command, the parser and main
+    "commands": ("benchmark.__main__", "benchmark.cli", "benchmark.commands.*"),
 }
 ORDER = tuple(LAYERS)
 MAY_IMPORT = {
@@ -71,7 +55,7 @@ MAY_IMPORT = {
     "commands": set(ORDER),
 }
 # what the harness (benchmark.*) may import of priors: the adapter API, the prior-free start of the
-# fits, the training helpers of the `train` command; every prior itself through benchmark.registry
+# fits, the training helpers of the `train` command; every prior itself through benchmark.run.registry
 HARNESS_MAY_IMPORT_PRIORS = {"priors.base", "priors.no_prior", "priors.training"}
 # functions that are a command although their module is not: a recipe's command line
 ENTRY_POINTS = {"main"}
@@ -142,7 +126,7 @@ def test_every_module_has_a_layer():
         except KeyError:
             missing.append(m)
     assert not missing, f"modules without a layer (add them to LAYERS and docs/architecture.md): {missing}"
-    assert layer_of("benchmark.protocols.table_run") == "run" and layer_of("benchmark.protocols.sls") == "protocols"
+    assert layer_of("benchmark.run.table_run") == "run" and layer_of("benchmark.protocols.sls") == "protocols"
 
 
 def test_imports_follow_the_layers():
@@ -165,13 +149,13 @@ def test_the_harness_reaches_priors_through_the_registry():
              for name, file in sorted(modules.items()) if name.startswith("benchmark")
              for dep, line, _, _ in imports_of(name, file, modules)
              if dep.startswith("priors") and dep not in HARNESS_MAY_IMPORT_PRIORS]
-    assert not wrong, "the harness imports a prior directly (use benchmark.registry):\n" + "\n".join(wrong)
+    assert not wrong, "the harness imports a prior directly (use benchmark.run.registry):\n" + "\n".join(wrong)
 
 
 def test_a_priors_network_imports_no_training_code():
     """priors/<name>/model.py is the network, pure torch: it imports neither the shared training
     recipe (priors.training) nor a train module (shared constants live in the core, e.g.
-    benchmark.skeleton.SMPL_LIKE_REST_JOINTS)."""
+    benchmark.core.skeleton.SMPL_LIKE_REST_JOINTS)."""
     modules = project_modules()
     wrong = [f"{_where(file, line)}: {name} imports {dep}"
              for name, file in sorted(modules.items()) if name.startswith("priors.") and name.endswith(".model")
@@ -180,11 +164,17 @@ def test_a_priors_network_imports_no_training_code():
     assert not wrong, "a network imports training code:\n" + "\n".join(wrong)
 
 
+# the packages that gather a layer's modules: inside them, a module or a sub-package is a node
+LAYER_PACKAGES = {"benchmark.core", "benchmark.data", "benchmark.run", "benchmark.tools", "benchmark.commands"}
+
+
 def package_of(module: str) -> str:
-    """The node of the package graph: a sub-package (``benchmark.protocols``, ``priors.hmvae``) or
-    a top-level module (``benchmark.motion``, ``priors.training``)."""
+    """The node of the package graph: a sub-package (``benchmark.protocols``, ``priors.hmvae``,
+    ``benchmark.run.backends``), a top-level module (``priors.training``) or a module of a layer's
+    package (``benchmark.core.motion``)."""
     parts = module.split(".")
-    return ".".join(parts[:2])
+    node = ".".join(parts[:2])
+    return ".".join(parts[:3]) if node in LAYER_PACKAGES else node
 
 
 def test_no_import_loop_between_packages():
@@ -251,15 +241,37 @@ def test_no_module_reexports_names_it_does_not_use():
 
 def test_layer_table_checks():
     """The checker itself: exact names beat patterns, unknown modules are refused."""
-    assert layer_of("benchmark.synthetic.splits") == "data" and layer_of("benchmark.work_units") == "core"
-    assert layer_of("benchmark.report.cli") == "commands" and layer_of("benchmark.report.build") == "run"
+    assert layer_of("benchmark.synthetic.splits") == "data" and layer_of("benchmark.core.work_units") == "core"
+    assert layer_of("benchmark.commands.report") == "commands" and layer_of("benchmark.report.build") == "run"
     try:
         layer_of("elsewhere.module")
     except KeyError:
         pass
     else:
         raise AssertionError("a module outside the table must have no layer")
-    assert package_of("benchmark.protocols.sls") == "benchmark.protocols" and package_of("benchmark.motion") == "benchmark.motion"
+    assert package_of("benchmark.protocols.sls") == "benchmark.protocols" and package_of("benchmark.core.motion") == "benchmark.core.motion"
+    assert package_of("benchmark.run.backends.local") == "benchmark.run.backends"
+
+
+def test_the_top_level_holds_packages_and_few_modules():
+    """benchmark/ holds the layers' packages and at most 8 modules (``__init__``, ``__main__``,
+    ``cli``): a new module goes into the package of its layer."""
+    top = sorted(f.stem for f in (ROOT / "benchmark").glob("*.py"))
+    assert len(top) <= 8 and {"__init__", "__main__", "cli"} <= set(top), top
+    layers = {layer_of(f"benchmark.{d.name}") for d in (ROOT / "benchmark").iterdir() if (d / "__init__.py").is_file()}
+    assert layers == set(ORDER) - {"priors"}, layers
+
+
+def test_every_parser_is_in_the_commands_package():
+    """Every ``add_parser`` call of the harness lives in benchmark/commands/ (one module per command)."""
+    wrong = []
+    for name, file in sorted(project_modules().items()):
+        if not name.startswith("benchmark.") or name.startswith("benchmark.commands."):
+            continue
+        for node in ast.walk(ast.parse(file.read_text(), filename=str(file))):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_parser":
+                wrong.append(_where(file, node.lineno))
+    assert not wrong, "add_parser outside benchmark/commands/:\n" + "\n".join(wrong)
 
 
 def defined_names(file: Path) -> tuple[set[str], dict[str, str]]:

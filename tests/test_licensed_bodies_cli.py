@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from benchmark.cli import main
-from benchmark.motion import Motion
+from benchmark.core.motion import Motion
 from test_smpl_body import make_model, write_chumpy_pkl, write_npz
 from tiny_run import amass_file, tiny_table1, write_motion
 

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.motion import Motion, joint_positions, stack_motions
-from benchmark.rotations import axis_angle_to_matrix, geodesic_distance
+from benchmark.core.motion import Motion, joint_positions, stack_motions
+from benchmark.core.rotations import axis_angle_to_matrix, geodesic_distance
 
 
 def make_motion(T=12, fps=30.0, seed=0, t0=0.0):
@@ -153,7 +153,7 @@ def test_stack_and_joint_positions_match_naive_fk():
     jp = joint_positions(a, rest)
     assert jp.shape == (6, 22, 3)
     # naive FK, one frame and joint at a time
-    from benchmark.skeleton import PARENTS
+    from benchmark.core.skeleton import PARENTS
 
     R = a.rotmats().double()
     for t in [0, 5]:
@@ -179,7 +179,7 @@ def test_save_is_byte_deterministic(tmp_path):
 
     import torch
 
-    from benchmark.motion import Motion
+    from benchmark.core.motion import Motion
 
     m = Motion(poses=torch.zeros(3, 22, 3), trans=torch.zeros(3, 3),
                timestamps=torch.arange(3, dtype=torch.float64) / 30, source="x", meta={"a": 1})

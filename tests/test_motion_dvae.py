@@ -7,8 +7,8 @@ import pytest
 import roma
 import torch
 
-from benchmark.frames import heading
-from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
+from benchmark.core.frames import heading
+from benchmark.core.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 from priors.base import FitBatch
 from priors.motion_dvae import MotionDVAEPrior

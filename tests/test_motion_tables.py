@@ -7,11 +7,11 @@ import math
 import pytest
 import torch
 
-from benchmark.catalog import get_profile, load_table_spec
-from benchmark.motion import Motion
+from benchmark.run.catalog import get_profile, load_table_spec
+from benchmark.core.motion import Motion
 from benchmark.protocols import denoise, inbetween, motion_fit, reconstruction
-from benchmark.work_units import plan_units, si_metric
-from benchmark.rotations import slerp_matrices
+from benchmark.core.work_units import plan_units, si_metric
+from benchmark.core.rotations import slerp_matrices
 from priors.base import MotionDenoiser
 from priors.no_prior import NoPrior
 from priors.slerp import SlerpBaseline
@@ -209,8 +209,8 @@ def test_root_path_errors_by_hand():
 # -------------------------------------------------------------------------------- end to end
 
 def test_run_table_inbetween_smoke(anny_body, motions, tmp_path):
-    from benchmark.protocols.table_run import run_table
-    from benchmark.registry import register, registry, unregister
+    from benchmark.run.table_run import run_table
+    from benchmark.run.registry import register, registry, unregister
 
     data = tmp_path / "data"
     for sid, m in motions.items():

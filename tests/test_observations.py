@@ -2,7 +2,7 @@
 
 A tiny rigid "box body" (every vertex skinned to the pelvis) stands in for the real body, so
 posed vertices have a closed form: R(root) @ v + trans. The motions are a small stand-in with
-the ``benchmark.motion.Motion`` interface (linear interpolation, exact for the test motions).
+the ``benchmark.core.motion.Motion`` interface (linear interpolation, exact for the test motions).
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import trimesh
 
 from benchmark.body.base import BodyModel, BodyOutput, RestState
 from benchmark.body.lbs import forward_kinematics, linear_blend_skinning, skinning_transforms
-from benchmark.motion_posing import capture_timestamps
-from benchmark.observations import (
+from benchmark.core.motion_posing import capture_timestamps
+from benchmark.data.observations import (
     GroundTruth,
     Landmarks,
     NoisyJoints,
@@ -29,8 +29,8 @@ from benchmark.observations import (
     make_scans,
     virtual_marker_indices,
 )
-from benchmark.skeleton import NUM_JOINTS
-from benchmark.surface_sampling import farthest_point_indices, sample_surface
+from benchmark.core.skeleton import NUM_JOINTS
+from benchmark.core.surface_sampling import farthest_point_indices, sample_surface
 
 HALF = torch.tensor([0.2, 0.5, 0.1], dtype=torch.float64)  # box half extents (m)
 
@@ -370,7 +370,7 @@ def test_make_noisy_joints():
 
 
 def test_works_with_the_project_motion_class():
-    motion = pytest.importorskip("benchmark.motion")
+    motion = pytest.importorskip("benchmark.core.motion")
     stub = make_motion(0.5, start=(0.3, 1.0, -0.2), seed=3)
     real = motion.Motion(poses=stub.poses, trans=stub.trans, timestamps=stub.timestamps)
     body = BoxBody()

@@ -2,7 +2,7 @@
 
 - Nothing a user wrote is deleted or overwritten before every argument is checked, and then only
   what the command wrote itself: ``data make-scans --force`` and ``complete --force`` replace a
-  folder only when it holds their marker (``benchmark.outdir.MARKER_NAME``) and nothing else.
+  folder only when it holds their marker (``benchmark.core.outdir.MARKER_NAME``) and nothing else.
 - An output never goes into, onto or around its input (``complete CAP/SEQ --out CAP/SEQ``).
 - Every command that writes checks ``--out`` first: a file or read-only ``--out`` fails in seconds,
   before any body, data, prior or measurement loads.
@@ -25,7 +25,7 @@ import pytest
 import torch
 
 from benchmark.cli import main
-from benchmark.outdir import MARKER_NAME
+from benchmark.core.outdir import MARKER_NAME
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -134,8 +134,8 @@ def test_complete_into_the_capture_folder_is_refused_and_the_capture_unchanged(s
 
 
 def test_complete_force_replaces_only_its_own_output(tmp_path, capsys, monkeypatch):
-    from benchmark.complete import OUTPUT_ENTRIES, check_complete_args
-    from benchmark.outdir import OutDirError, write_marker
+    from benchmark.tools.complete import OUTPUT_ENTRIES, check_complete_args
+    from benchmark.core.outdir import OutDirError, write_marker
 
     class Args:
         input = str(tmp_path / "m.npz")
@@ -162,10 +162,10 @@ def _no_work(mp):
     def work(*a, **k):
         raise AssertionError("work started before --out was checked")
 
-    for target in ("benchmark.body.get_body", "benchmark.protocols.completion.fit", "benchmark.protocols.table_run.run_table",
-                   "benchmark.perf.chamfer_compare", "benchmark.perf.surface_compare", "benchmark.cli_run.make_adapter",
+    for target in ("benchmark.body.get_body", "benchmark.protocols.completion.fit", "benchmark.run.table_run.run_table",
+                   "benchmark.tools.perf.chamfer_compare", "benchmark.tools.perf.surface_compare", "benchmark.commands.export_onnx.make_adapter",
                    "priors.vposer.train.train_vposer", "benchmark.synthetic.splits.build_split",
-                   "benchmark.report.build_report", "benchmark.train_report._plot", "benchmark.loaders.convert.load_motion"):
+                   "benchmark.report.build_report", "benchmark.tools.train_report._plot", "benchmark.loaders.convert.load_motion"):
         module, name = target.rsplit(".", 1)
         mp.setattr(importlib.import_module(module), name, work)  # a module, even where a function shares its name
 
@@ -216,7 +216,7 @@ def test_every_command_that_writes_fails_on_a_bad_out_before_work(command, bad, 
         def denied(*a, **k):
             raise PermissionError(errno.EACCES, "Permission denied")
 
-        monkeypatch.setattr("benchmark.outdir.tempfile.mkstemp", denied)  # as root chmod cannot refuse a write
+        monkeypatch.setattr("benchmark.core.outdir.tempfile.mkstemp", denied)  # as root chmod cannot refuse a write
     t0 = time.perf_counter()
     rc = main(argv)
     elapsed = time.perf_counter() - t0
@@ -247,7 +247,7 @@ def test_complete_with_a_file_out_fails_within_seconds_in_a_new_process(tmp_path
 
 # -- the pieces ---------------------------------------------------------------------------------------
 def test_overlap_rules(tmp_path):
-    from benchmark.outdir import OutDirError, check_not_overlapping
+    from benchmark.core.outdir import OutDirError, check_not_overlapping
 
     (tmp_path / "a" / "b").mkdir(parents=True)
     for out, says in ((tmp_path / "a", "itself"), (tmp_path / "a" / "b", "lies inside"), (tmp_path, "contains"),
@@ -262,7 +262,7 @@ def test_overlap_rules(tmp_path):
 
 
 def test_a_marker_cannot_name_a_path_outside_its_folder(tmp_path):
-    from benchmark.outdir import remove_entries, write_marker
+    from benchmark.core.outdir import remove_entries, write_marker
 
     (tmp_path / "keep").write_text("x")
     (tmp_path / "out").mkdir()
@@ -275,7 +275,7 @@ def test_a_marker_cannot_name_a_path_outside_its_folder(tmp_path):
 def test_number_types_name_the_range():
     import argparse
 
-    from benchmark import argtypes as at
+    from benchmark.core import argtypes as at
 
     assert at.positive_int("3") == 3 and at.positive_int("1e3") == 1000 and at.non_negative_int("0") == 0
     assert at.fps("1") == 1.0 and at.fps("1000") == 1000.0 and at.fraction("0") == 0.0
@@ -294,7 +294,7 @@ def test_number_types_name_the_range():
 def test_opset_range_is_torchs_and_checked_by_the_library_too(tmp_path):
     from torch.onnx import _constants
 
-    from benchmark.export_onnx import MIN_DYNAMIC_BATCH_OPSET, export_onnx, supported_opsets
+    from benchmark.tools.export_onnx import MIN_DYNAMIC_BATCH_OPSET, export_onnx, supported_opsets
 
     lo, hi = supported_opsets()
     assert lo == max(_constants.ONNX_MIN_OPSET, MIN_DYNAMIC_BATCH_OPSET) and hi == _constants.ONNX_MAX_OPSET

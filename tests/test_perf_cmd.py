@@ -2,7 +2,7 @@
 
 import json
 
-from benchmark.perf import chamfer_compare, format_report
+from benchmark.tools.perf import chamfer_compare, format_report
 
 
 def test_chamfer_compare_and_report(tmp_path):

@@ -1,4 +1,4 @@
-"""The plausibility checks (benchmark/plausibility.py, issue 33): every refused case, every warned
+"""The plausibility checks (benchmark/core/plausibility.py, issue 33): every refused case, every warned
 case, and normal data (the synthetic test split, the loaders' own test inputs) passing silently."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark import plausibility as P
-from benchmark.motion import Motion
+from benchmark.core import plausibility as P
+from benchmark.core.motion import Motion
 
 
 def seconds(n=121, fps=30.0):
@@ -311,7 +311,7 @@ def test_a_longer_shape_whose_extra_values_are_zero_is_a_warning(body, caplog):
 
 
 def test_shape_for_body_checks_and_keeps_plausible_shapes_bit_for_bit():
-    from benchmark.motion import shape_for_body
+    from benchmark.core.motion import shape_for_body
 
     anny = types.SimpleNamespace(name="anny", shape_dim=6)
     smpl = types.SimpleNamespace(name="smpl-neutral", model_type="smpl", shape_dim=10)
@@ -329,7 +329,7 @@ def test_shape_for_body_checks_and_keeps_plausible_shapes_bit_for_bit():
 
 # ------------------------------------------------------------------------------------------------ normal data
 def test_the_synthetic_test_split_passes_every_check_silently(tmp_path, caplog):
-    from benchmark.motion import shape_for_body
+    from benchmark.core.motion import shape_for_body
     from benchmark.synthetic.splits import build_split
 
     anny = types.SimpleNamespace(name="anny", shape_dim=6)

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from benchmark.registry import get_prior_class, make_adapter, prior_names
+from benchmark.run.registry import get_prior_class, make_adapter, prior_names
 from priors.base import (
     INTERFACES, Decoded, MotionEncoder, PriorAdapter, WindowSpec, has_motion_encoder, interfaces_of,
 )

@@ -6,7 +6,7 @@ import types
 import pytest
 import torch
 
-from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
+from benchmark.core.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 
 

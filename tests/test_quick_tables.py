@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from benchmark.catalog import get_profile, load_table_spec
-from benchmark.cli_run import default_priors
-from benchmark.protocols.table_run import run_table
+from benchmark.run.catalog import get_profile, load_table_spec
+from benchmark.commands.run import default_priors
+from benchmark.run.table_run import run_table
 from goldens import check_or_update
 
 ROOT = Path(__file__).resolve().parents[1]

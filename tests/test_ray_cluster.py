@@ -21,9 +21,9 @@ from pathlib import Path
 
 import pytest
 
-from benchmark.backends import RayBackend
-from benchmark.catalog import get_profile, load_table_spec
-from benchmark.protocols import table_run
+from benchmark.run.backends import RayBackend
+from benchmark.run.catalog import get_profile, load_table_spec
+from benchmark.run import table_run
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE = "inbetween"

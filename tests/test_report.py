@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.catalog import get_profile, load_table_spec
-from benchmark.motion import Motion
+from benchmark.run.catalog import get_profile, load_table_spec
+from benchmark.core.motion import Motion
 
 
 def _motion(seed: int, seconds: float = 2.2, fps: float = 50.0, subject: str = "s", turn: float = 0.4) -> Motion:
@@ -44,7 +44,7 @@ def tiny_spec() -> dict:
 
 @pytest.fixture(scope="module")
 def run_dir(anny_body, tmp_path_factory):
-    from benchmark.protocols.table_run import run_table
+    from benchmark.run.table_run import run_table
 
     root = tmp_path_factory.mktemp("report_run")
     data = root / "data"
@@ -62,7 +62,7 @@ def test_units_store_the_scored_fit(run_dir, anny_body):
     ground truth gives the MPJPE of the unit JSON."""
     import roma
 
-    from benchmark.unit_arrays import read_arrays
+    from benchmark.data.unit_arrays import read_arrays
 
     units = sorted((run_dir / "units").glob("*.json"))
     assert len(units) == 2
@@ -89,7 +89,7 @@ def test_units_store_the_scored_fit(run_dir, anny_body):
 
 
 def test_write_arrays_is_atomic_and_rejects_objects(tmp_path):
-    from benchmark.unit_arrays import read_arrays, write_arrays
+    from benchmark.data.unit_arrays import read_arrays, write_arrays
 
     path = write_arrays(tmp_path / "u.npz", {"a": np.arange(3, dtype=np.float32)})
     assert read_arrays(path)["a"].tolist() == [0, 1, 2]
@@ -102,7 +102,7 @@ def test_write_arrays_is_atomic_and_rejects_objects(tmp_path):
 def test_root_errors_flag_a_turned_fit():
     import roma
 
-    from benchmark.fit_diagnostics import root_errors
+    from benchmark.core.fit_diagnostics import root_errors
 
     yaw = torch.tensor([0.0, 0.5, math.pi, 2.0])
     fit = roma.rotvec_to_rotmat(torch.stack([torch.zeros(4), yaw, torch.zeros(4)], -1)).double().numpy()

@@ -7,10 +7,11 @@ import os
 import numpy as np
 import pytest
 
-from benchmark.table_derive import derive_table
-from benchmark.work_units import atomic_write_json, atomic_write_text, canonical_json, validate_unit_result
-from benchmark.catalog import load_table_spec
-from benchmark.provenance import collect_provenance
+from benchmark.run.table_derive import derive_table
+from benchmark.core.json_io import atomic_write_json, atomic_write_text, canonical_json
+from benchmark.core.work_units import validate_unit_result
+from benchmark.run.catalog import load_table_spec
+from benchmark.core.provenance import collect_provenance
 from fake_units import PRIORS, FakeExecutor, frame_errors, meta, plan, profile, table_spec
 
 

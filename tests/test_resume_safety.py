@@ -17,9 +17,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from benchmark import runner
-from benchmark.outdir import OutDirError, OutDirLock, check_out_dir
-from benchmark.work_units import atomic_write_json, checksum_problem, plan_units, unit_checksum, unit_path
+from benchmark.run import runner
+from benchmark.core.outdir import OutDirError, OutDirLock, check_out_dir
+from benchmark.core.json_io import atomic_write_json
+from benchmark.core.work_units import checksum_problem, plan_units, unit_checksum, unit_path
 from fake_units import FakeExecutor, plan, profile, table_spec
 from tiny_run import tiny_table1, write_motion
 
@@ -87,8 +88,8 @@ def test_data_hashes_enter_the_spec_of_the_batches_that_read_them():
 
 
 def test_motion_hash_follows_content_not_name(tmp_path):
-    from benchmark.motion import Motion
-    from benchmark.protocols.table_run import motion_sha256
+    from benchmark.core.motion import Motion
+    from benchmark.run.table_run import motion_sha256
 
     a = Motion.load(write_motion(tmp_path / "a.npz", seed=0))
     again = Motion.load(write_motion(tmp_path / "copy" / "a.npz", seed=0))
@@ -102,7 +103,7 @@ def test_motion_hash_follows_content_not_name(tmp_path):
 def test_weights_content_hash_covers_embedded_and_given_files(tmp_path):
     import hashlib
 
-    from benchmark.registry import make_adapter, weights_content_sha256
+    from benchmark.run.registry import make_adapter, weights_content_sha256
 
     src = ROOT / "priors" / "weights" / "vposer.pt"
     copy = tmp_path / "vposer.pt"
@@ -164,7 +165,7 @@ def test_check_out_dir_creates_and_refuses(tmp_path):
 def _holder(out: Path, seconds: float) -> subprocess.Popen:
     code = textwrap.dedent(f"""
         import sys, time
-        from benchmark.outdir import OutDirLock
+        from benchmark.core.outdir import OutDirLock
         with OutDirLock({str(out)!r}, command="holder"):
             print("locked", flush=True)
             time.sleep({seconds})
@@ -233,9 +234,9 @@ def test_files_follow_the_umask(tmp_path, mask, mode):
 _KILL_SCRIPT = textwrap.dedent("""
     import json, sys, time
     sys.path[:0] = [{root!r}, {tests!r}]
-    from benchmark import runner
-    from benchmark.table_derive import derive_table
-    from benchmark.writers import write_table
+    from benchmark.run import runner
+    from benchmark.run.table_derive import derive_table
+    from benchmark.run.writers import write_table
     from fake_units import FakeExecutor, meta, plan, table_spec
 
     out, delay = sys.argv[1], float(sys.argv[2])

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark import rotations as rot
+from benchmark.core import rotations as rot
 
 torch.manual_seed(0)
 

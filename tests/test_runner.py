@@ -6,10 +6,10 @@ import logging
 
 import pytest
 
-from benchmark import runner
-from benchmark.backends import BACKENDS
-from benchmark.table_derive import derive_table
-from benchmark.work_units import load_unit_results, unit_path
+from benchmark.run import runner
+from benchmark.run.backends import BACKENDS
+from benchmark.run.table_derive import derive_table
+from benchmark.core.work_units import load_unit_results, unit_path
 from fake_units import FakeExecutor, meta, plan, table_spec
 
 
@@ -68,7 +68,7 @@ def test_a_failing_unit_is_logged_skipped_and_rerun_later(tmp_path, caplog):
     units = plan()
     bad = units[5].unit_id
     ex = FakeExecutor(fail={bad})
-    with caplog.at_level(logging.ERROR, logger="benchmark.runner"):
+    with caplog.at_level(logging.ERROR, logger="benchmark.run.runner"):
         report = runner.run_units(units, ex, tmp_path, progress=False)
     assert not report.ok and list(report.failed) == [bad]
     assert "simulated failure" in report.failed[bad] and bad in report.summary()

@@ -23,7 +23,7 @@ import pytest
 import torch
 
 from benchmark.cli import main
-from benchmark.safe_loading import (
+from benchmark.core.safe_loading import (
     InertStandIn,
     UnsafeFileError,
     is_lightning_bookkeeping,
@@ -364,7 +364,7 @@ def test_a_complete_cache_file_is_not_called_damaged(tmp_path):
 def test_no_unsafe_loading_call_in_the_code():
     """benchmark/ and priors/ never unpickle with a full unpickler: torch.load only with
     weights_only=True, np.load never with allow_pickle=True, yaml only through safe_load, no
-    eval/exec. The one pickle.load is the process backend's own executor file (benchmark/backends.py)."""
+    eval/exec. The one pickle.load is the process backend's own executor file (benchmark/run/backends/local.py)."""
     bad = []
     patterns = {
         "weights_only=False": re.compile(r"weights_only\s*=\s*False"),
@@ -374,7 +374,7 @@ def test_no_unsafe_loading_call_in_the_code():
         "eval/exec": re.compile(r"(?<![\w.])(eval|exec)\("),
         "pickle.load": re.compile(r"pickle\.loads?\("),
     }
-    allowed = {("benchmark/backends.py", "pickle.load")}
+    allowed = {("benchmark/run/backends/local.py", "pickle.load")}
     for pkg in ("benchmark", "priors"):
         for f in sorted((ROOT / pkg).rglob("*.py")):
             rel = f.relative_to(ROOT).as_posix()

@@ -114,7 +114,7 @@ def test_errors_name_the_file_and_the_fix(tmp_path):
 def test_capture_content_hash_follows_bytes_units_and_up(tmp_path):
     """Resume keys a capture's units on its content: the frames' bytes, the up axis and the units."""
     from benchmark.loaders.scans import ScanSequence
-    from benchmark.protocols.table_run import motion_sha256
+    from benchmark.run.table_run import motion_sha256
 
     write_mixed_folder(tmp_path)
     base = motion_sha256(ScanSequence(tmp_path, check=False))

@@ -32,7 +32,7 @@ def write_folder(folder, clouds, timestamps=None, fps=50.0):
 
 
 def table1_spec(window_s=4.0):
-    from benchmark.catalog import load_table_spec
+    from benchmark.run.catalog import load_table_spec
 
     spec = copy.deepcopy(load_table_spec("table1"))
     spec["data"]["window_s"] = window_s
@@ -116,7 +116,7 @@ def test_data_option_strings():
         scan_data_spec(None, "z", None)
     with pytest.raises(ValueError, match="unknown option 'colour=red'"):
         parse_scan_data("scans=/d?colour=red")
-    from benchmark.table_data import load_motions
+    from benchmark.data.table_data import load_motions
 
     with pytest.raises(ValueError, match="completion protocol"):
         load_motions("scans=/d", 4.0)
@@ -148,8 +148,8 @@ def test_ground_truth_between_capture_frames_is_the_interpolated_nearest_frame(t
 
 # -- the scan path against the synthetic one --------------------------------------------------------
 def run_both(tmp_path, anny_body, spec, steps, prior="no-prior", surface_points=None):
-    from benchmark.catalog import get_profile
-    from benchmark.protocols.table_run import run_table
+    from benchmark.run.catalog import get_profile
+    from benchmark.run.table_run import run_table
     from benchmark.synthetic.scan_set import make_scan_set
 
     profile = dict(get_profile("smoke", "table1"))
@@ -214,7 +214,7 @@ def small_scan_set(tmp_path_factory, anny_body):
 
 
 def test_make_scans_writes_the_layout_with_holes_noise_and_ground_truth(small_scan_set):
-    from benchmark.motion import Motion
+    from benchmark.core.motion import Motion
 
     seq = ScanSequence(small_scan_set, up="z", units="mm")
     assert len(seq.frames) == 30 and seq.capture_fps == pytest.approx(60.0, rel=1e-4)
@@ -284,7 +284,7 @@ def _complete_no_prior(tmp_path, anny_body):
     against its generating motion, at the default (quick) profile."""
     import argparse
 
-    from benchmark.complete import run_complete
+    from benchmark.tools.complete import run_complete
     from benchmark.synthetic.scan_set import make_scan_set
 
     (folder,) = make_scan_set(tmp_path / "scans", sequences=1, body=anny_body)

@@ -6,8 +6,8 @@ import pytest
 import roma
 import torch
 
-from benchmark.frames import sixd_columns_to_matrix as gram_schmidt, yaw_matrix
-from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
+from benchmark.core.frames import sixd_columns_to_matrix as gram_schmidt, yaw_matrix
+from benchmark.core.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 from priors.base import FitBatch
 from priors.sequential_primitives import SequentialPrimitivesPrior

@@ -24,10 +24,10 @@ from pathlib import Path
 
 import pytest
 
-from benchmark import runner
-from benchmark.backends import (EXECUTOR_FOLDER_PREFIX, ProcessBackend, _executor_folder, _host_tag,
-                                _keep_sigterm_handler)
-from benchmark.interrupts import Terminated, add_stop_note, exit_code, sigterm_raises, stop_message
+from benchmark.run import runner
+from benchmark.run.backends.local import EXECUTOR_FOLDER_PREFIX, ProcessBackend, _executor_folder, _host_tag
+from benchmark.run.backends.ray_backend import _keep_sigterm_handler
+from benchmark.core.interrupts import Terminated, add_stop_note, exit_code, sigterm_raises, stop_message
 from fake_units import FakeExecutor, plan
 from tiny_run import write_motion
 

@@ -8,11 +8,11 @@ import math
 import pytest
 import torch
 
-from benchmark.catalog import get_profile, load_table_spec
-from benchmark.motion import Motion
+from benchmark.run.catalog import get_profile, load_table_spec
+from benchmark.core.motion import Motion
 from benchmark.protocols import sls, sls_cycles, sls_data, sls_fit
-from benchmark.work_units import grid_cells, plan_units
-from benchmark.rotations import axis_angle_to_matrix
+from benchmark.core.work_units import grid_cells, plan_units
+from benchmark.core.rotations import axis_angle_to_matrix
 from priors.base import AnchorDecoder, Decoded, PriorAdapter, WindowSpec
 
 PERIOD = 0.8
@@ -162,7 +162,7 @@ def test_adaptive_weights_move_and_stay_positive():
 
 
 def test_weights_adapt_during_a_fit(source, cycle_motions, anny_body):
-    from benchmark.registry import make_adapter
+    from benchmark.run.registry import make_adapter
 
     ids = sorted(cycle_motions)[:1]
     spec = tiny_spec()
@@ -181,13 +181,13 @@ def test_weights_adapt_during_a_fit(source, cycle_motions, anny_body):
 # --------------------------------------------------------------------------- units
 @pytest.mark.parametrize("prior", ["no-prior", "vposer-slerp"])
 def test_run_unit_gives_finite_metrics(prior, source, cycle_motions, anny_body):
-    from benchmark.registry import make_adapter
+    from benchmark.run.registry import make_adapter
 
     ids = sorted(cycle_motions)[:1]
     spec = tiny_spec()
     unit = _unit(spec, prior, "f5", ids)
     r = sls.run_unit(unit, spec, TINY_PROFILE, make_adapter(prior), anny_body, source, "cpu")
-    from benchmark.work_units import validate_unit_result
+    from benchmark.core.work_units import validate_unit_result
 
     validate_unit_result(r, unit)
     row = r["per_sequence"][0]
@@ -202,7 +202,7 @@ def test_run_unit_gives_finite_metrics(prior, source, cycle_motions, anny_body):
 def test_fit_is_deterministic(source, cycle_motions, anny_body):
     """Same seed, same cell, same sequences: the same observation and the same fitted variables
     (vposer-slerp starts from a random latent sample; the evaluation itself is exact)."""
-    from benchmark.registry import make_adapter
+    from benchmark.run.registry import make_adapter
 
     ids = sorted(cycle_motions)[:1]
     spec = tiny_spec()
@@ -277,7 +277,7 @@ def test_anchor_decoder_path_fits_timestamps(source, cycle_motions, anny_body):
 
 # --------------------------------------------------------------------------- the table run
 def test_smoke_table_run_writes_json(tmp_path, anny_body, monkeypatch):
-    from benchmark.protocols.table_run import run_table
+    from benchmark.run.table_run import run_table
 
     monkeypatch.setattr(sls, "source_motions", lambda data, body: {"hand:0000": handmade_motion()})
     spec = tiny_spec(["p0", "f5"])

@@ -20,7 +20,7 @@ from benchmark.body.landmarks import ray_exit_vertices, select_landmarks
 from benchmark.body.resolve import ENV_VAR, candidate_files, load_body, resolve_body_model_file
 from benchmark.body.smpl import SMPLBody
 from benchmark.body.smpl_files import MissingKeyError, read_body_model_file
-from benchmark.skeleton import JOINT_INDEX, JOINT_NAMES, LANDMARK_NAMES, MIRROR, PARENTS
+from benchmark.core.skeleton import JOINT_INDEX, JOINT_NAMES, LANDMARK_NAMES, MIRROR, PARENTS
 
 # ----------------------------------------------------------------------------------------------
 # Synthetic model files

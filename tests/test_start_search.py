@@ -11,14 +11,14 @@ import pytest
 import roma
 import torch
 
-from benchmark.motion import Motion
-from benchmark.observations import make_scans
+from benchmark.core.motion import Motion
+from benchmark.data.observations import make_scans
 from benchmark.protocols.completion import fit, observation_batch
 from benchmark.protocols.fit_state import init_state
 from benchmark.protocols.start_search import (LIMB_START_STAGES, START_SEARCH_RULES, _best_per_frame, encoded_start,
                                                 limb_hypotheses, limb_start_search, prior_free_start,
                                                 supports_encoded_start, supports_start_search)
-from benchmark.registry import make_adapter
+from benchmark.run.registry import make_adapter
 
 
 def _motion(frames: int = 8, fps: float = 10.0, arms_down_from: int = 0) -> Motion:

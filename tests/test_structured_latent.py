@@ -10,7 +10,7 @@ import pytest
 import roma
 import torch
 
-from benchmark.motion import Motion
+from benchmark.core.motion import Motion
 from benchmark.synthetic import cycles as cyc
 from priors.base import FitBatch
 from priors.structured_latent import (
@@ -136,7 +136,7 @@ def test_representation_round_trip_and_alignment():
     assert torch.allclose(R2, R, atol=1e-5) and torch.allclose(t2, trans, atol=1e-5) and torch.allclose(tau2, tau.float(), atol=1e-6)
     assert torch.allclose(rep.motion_to_chi(R2, t2, tau2, tmin, tmax, tau_max), chi, atol=1e-5)
     x = torch.randn(50, 6, generator=g)
-    from benchmark.rotations import sixd_to_matrix
+    from benchmark.core.rotations import sixd_to_matrix
 
     assert torch.allclose(rep.sixd_columns_to_matrix(x), sixd_to_matrix(x, "columns"), atol=1e-6)
     # identity rotations give zeros in the pose channels (the paper's identity removal, columns layout)

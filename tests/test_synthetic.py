@@ -13,9 +13,9 @@ import roma
 import torch
 
 from benchmark.body.lbs import forward_kinematics
-from benchmark.motion import Motion
-from benchmark.skeleton import JOINT_INDEX as J
-from benchmark.skeleton import MIRROR
+from benchmark.core.motion import Motion
+from benchmark.core.skeleton import JOINT_INDEX as J
+from benchmark.core.skeleton import MIRROR
 from benchmark.synthetic import splits as splits_mod
 from benchmark.synthetic.actions import ACTIONS
 from benchmark.synthetic.contact import GRAVITY, solve_root_track

@@ -2,9 +2,9 @@
 
 import torch
 
-from benchmark.motion import Motion
-from benchmark.table_data import load_motions
-from benchmark.work_units import select_sequences
+from benchmark.core.motion import Motion
+from benchmark.data.table_data import load_motions
+from benchmark.core.work_units import select_sequences
 
 
 class _Body:

@@ -4,7 +4,7 @@ import json
 import subprocess
 import sys
 
-from benchmark.train_report import build_train_report, final_values, histories
+from benchmark.tools.train_report import build_train_report, final_values, histories
 
 
 def test_histories_and_final_values_are_found_at_any_depth():

@@ -11,7 +11,7 @@ import roma
 import torch
 import torch.nn.functional as F
 
-from benchmark.skeleton import SMPL_LIKE_REST_JOINTS
+from benchmark.core.skeleton import SMPL_LIKE_REST_JOINTS
 from priors import training
 from priors.base import FitBatch
 from priors.vposer import VPoserSlerp

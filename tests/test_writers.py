@@ -6,9 +6,9 @@ import json
 
 import pytest
 
-from benchmark.catalog import load_table_spec
-from benchmark.table_derive import derive_table
-from benchmark.writers import format_csv, format_latex, format_markdown, metric_label, write_table
+from benchmark.run.catalog import load_table_spec
+from benchmark.run.table_derive import derive_table
+from benchmark.run.writers import format_csv, format_latex, format_markdown, metric_label, write_table
 from fake_units import FakeExecutor, meta, plan, table_spec
 
 NA = "2 s windows cannot hold 100 points"

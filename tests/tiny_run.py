@@ -9,7 +9,7 @@ import copy
 import numpy as np
 import torch
 
-import benchmark.catalog as catalog
+import benchmark.run.catalog as catalog
 
 _SPEC, _PROFILE = catalog.load_table_spec, catalog.get_profile
 
@@ -35,7 +35,7 @@ def tiny_table1(monkeypatch, fps=(5,)):
 
 def write_motion(path, seed=0, seconds=4.0, scale=0.1, speed=0.0, shape=None, body=None):
     """A harness motion .npz: random small rotations, optional walk forward."""
-    from benchmark.motion import Motion
+    from benchmark.core.motion import Motion
 
     n = int(seconds * 30) + 1
     g = torch.Generator().manual_seed(seed)

@@ -35,8 +35,8 @@ import torch
 
 from benchmark.body.base import BodyModel, BodyOutput, RestState
 from benchmark.body.lbs import forward_kinematics, linear_blend_skinning
-from benchmark.rotations import rotation_between
-from benchmark.skeleton import JOINT_INDEX, JOINT_NAMES, NUM_JOINTS, PARENTS
+from benchmark.core.rotations import rotation_between
+from benchmark.core.skeleton import JOINT_INDEX, JOINT_NAMES, NUM_JOINTS, PARENTS
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from benchmark.skeleton import LANDMARK_NAMES, NUM_JOINTS
+from benchmark.core.skeleton import LANDMARK_NAMES, NUM_JOINTS
 
 
 @dataclass
@@ -110,7 +110,7 @@ class BodyModel(torch.nn.Module):
             return None
         cache = self.__dict__.setdefault("_loss_subsets", {})
         if count not in cache:
-            from benchmark.surface_sampling import farthest_point_indices
+            from benchmark.core.surface_sampling import farthest_point_indices
 
             with torch.no_grad():
                 rest = self.prepare(self.default_shape(1).to(self.faces.device))
@@ -127,7 +127,7 @@ class BodyModel(torch.nn.Module):
 def as_rotation_matrices(rotations: torch.Tensor, sixd_layout: str = "columns") -> torch.Tensor:
     """Accept (..., 3, 3) matrices or (..., 6) 6D; return matrices."""
     if rotations.shape[-1] == 6:
-        from benchmark.rotations import sixd_to_matrix
+        from benchmark.core.rotations import sixd_to_matrix
 
         return sixd_to_matrix(rotations, layout=sixd_layout)
     if rotations.shape[-2:] != (3, 3):

@@ -28,7 +28,7 @@ import math
 
 import torch
 
-from benchmark.skeleton import JOINT_INDEX, LANDMARK_NAMES, NUM_JOINTS
+from benchmark.core.skeleton import JOINT_INDEX, LANDMARK_NAMES, NUM_JOINTS
 
 _X, _Y, _Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
@@ -91,7 +91,7 @@ def select_landmarks(vertices: torch.Tensor, joints: torch.Tensor, cone_degrees:
     """The 16 landmark vertex indices, in ``LANDMARK_NAMES`` order, of a T-pose mesh.
 
     vertices: (V, 3) T-pose (zero pose) mesh in metres, y up, facing +z, left at +x.
-    joints: (22, 3) its SMPL joints (``benchmark.skeleton.JOINT_NAMES`` order).
+    joints: (22, 3) its SMPL joints (``benchmark.core.skeleton.JOINT_NAMES`` order).
     Returns a (16,) long tensor on the vertices' device. See the module docstring for the rules.
     """
     vertices = torch.as_tensor(vertices)

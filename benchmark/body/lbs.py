@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-from benchmark.skeleton import PARENTS
+from benchmark.core.skeleton import PARENTS
 
 
 def kinematic_levels(parents=PARENTS) -> list[list[int]]:

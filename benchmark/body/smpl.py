@@ -33,7 +33,7 @@ from benchmark.body.base import BodyModel, BodyOutput, RestState
 from benchmark.body.landmarks import select_landmarks
 from benchmark.body.lbs import forward_kinematics, linear_blend_skinning, skinning_transforms
 from benchmark.body.smpl_files import BodyModelData, read_body_model_file
-from benchmark.skeleton import NUM_JOINTS, PARENTS
+from benchmark.core.skeleton import NUM_JOINTS, PARENTS
 
 
 def fold_skinning_weights(weights: np.ndarray, parents: np.ndarray, num_body_joints: int = NUM_JOINTS) -> np.ndarray:

@@ -20,7 +20,7 @@ and every ``scipy.sparse`` matrix class to :class:`SparseStandIn`, densified fro
 ``data / indices / indptr`` state. Nothing else is imported or called: besides those stand-ins the
 unpickler knows only numpy arrays and scalars and plain containers (:data:`MODEL_PICKLE_GLOBALS`),
 and a file that names anything else (``os.system``, ``builtins.eval``...) is refused with
-:class:`benchmark.safe_loading.UnsafeFileError` before any of it runs.
+:class:`benchmark.core.safe_loading.UnsafeFileError` before any of it runs.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmark.safe_loading import unsafe_file_error
+from benchmark.core.safe_loading import unsafe_file_error
 
 REQUIRED_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
 MODEL_TYPES = {24: "smpl", 52: "smplh", 55: "smplx"}  # number of joints -> model type

@@ -31,10 +31,10 @@ import numpy as np
 import torch
 import yaml
 
-from benchmark.frames import Z_UP_TO_Y_UP
-from benchmark.motion import Motion
-from benchmark.plausibility import check_motion
-from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from benchmark.core.frames import Z_UP_TO_Y_UP
+from benchmark.core.motion import Motion
+from benchmark.core.plausibility import check_motion
+from benchmark.core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 FRAME_RATE_TABLE = Path(__file__).with_name("frame_rates.yaml")
 

@@ -35,7 +35,7 @@ parameter, so other BVH files load too:
   palms face down as in SMPL), so no twist is applied by default.
 
 The SMPL rest joints implied by the file (its own bone lengths, in the SMPL T-pose) are stored in
-``meta["rest_joints"]`` (metres); with them, :func:`benchmark.motion.joint_positions` reproduces
+``meta["rest_joints"]`` (metres); with them, :func:`benchmark.core.motion.joint_positions` reproduces
 the file's joint positions (exactly, when the folded joints LHipJoint/RHipJoint and Neck1 carry
 no rotation). ``trans`` = Hips world position x unit - rest pelvis, so the pelvis lands where the
 file puts it.
@@ -56,14 +56,14 @@ from benchmark.loaders.bvh_format import (
     BVHSkeleton,
     parse_bvh,
 )
-from benchmark.motion import Motion
-from benchmark.plausibility import MIN_MOTION_FRAMES, check_motion
-from benchmark.rotations import (
+from benchmark.core.motion import Motion
+from benchmark.core.plausibility import MIN_MOTION_FRAMES, check_motion
+from benchmark.core.rotations import (
     axis_angle_to_matrix,
     matrix_to_axis_angle,
     rotation_between,
 )
-from benchmark.skeleton import JOINT_INDEX, JOINT_NAMES, PARENTS
+from benchmark.core.skeleton import JOINT_INDEX, JOINT_NAMES, PARENTS
 
 __all__ = [
     "CMU_JOINT_MAP",

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmark.rotations import euler_to_matrix, matrix_to_euler
+from benchmark.core.rotations import euler_to_matrix, matrix_to_euler
 
 _CHANNEL_RE = re.compile(r"^([XYZ])(position|rotation)$", re.IGNORECASE)
 

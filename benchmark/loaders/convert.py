@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmark.motion import Motion, shape_for_body
+from benchmark.core.motion import Motion, shape_for_body
 
 
 def detect_format(path) -> str:
@@ -64,9 +64,9 @@ def convert(input_path, out_path, fps: float | None = None, overwrite: bool = Fa
 
     body: a body model (:func:`benchmark.body.get_body`): the motion's shape is stored for it (SMPL
         betas cut or zero-padded to its shape count, another body's shape dropped); a shape whose
-        length cannot be the body's is an error (:func:`benchmark.plausibility.check_shape`).
+        length cannot be the body's is an error (:func:`benchmark.core.plausibility.check_shape`).
 
-    Every loader checks what it reads (:mod:`benchmark.plausibility`): time units, translation
+    Every loader checks what it reads (:mod:`benchmark.core.plausibility`): time units, translation
     scale; the error names the input file, the field and the fix.
 
     Refuses to replace an existing ``out_path`` unless ``overwrite=True`` (CLI: ``--force``). The
@@ -87,7 +87,7 @@ def convert(input_path, out_path, fps: float | None = None, overwrite: bool = Fa
     detect_format(input_path)  # a wrong format is reported before the output folder is checked
     if not Path(input_path).is_file():
         raise FileNotFoundError(f"{input_path}: no such file")
-    from benchmark.outdir import check_out_dir
+    from benchmark.core.outdir import check_out_dir
 
     check_out_dir(out_path.parent if str(out_path.parent) else Path("."), min_free_bytes=1 << 20,
                   what="the folder of --out")

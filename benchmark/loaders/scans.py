@@ -15,10 +15,10 @@ file in the folder, or ``fps`` (frame i at i / fps seconds).
 
 Meshes (a PLY/OBJ with faces) contribute their vertices as the frame's points, unless ``sample``
 is given: then ``sample`` points are drawn uniformly over each mesh's surface area
-(:func:`benchmark.surface_sampling.sample_surface`). Point clouds always contribute their points.
+(:func:`benchmark.core.surface_sampling.sample_surface`). Point clouds always contribute their points.
 Units are taken as they are in the files: the project expects metres, y up.
 
-Plausibility (:mod:`benchmark.plausibility`, thresholds there): timestamps must give 1-1,000 fps
+Plausibility (:mod:`benchmark.core.plausibility`, thresholds there): timestamps must give 1-1,000 fps
 over at most an hour (millisecond timestamps are refused, naming the fix); every frame needs at
 least 3 points and coordinates within 1 km of the origin. :class:`ScanSequence` (what ``run
 table1 --data scans=DIR`` and ``complete DIR`` read) checks every frame file when it is built, so a
@@ -36,10 +36,10 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from benchmark.observations import PointCloudSequence
-from benchmark.plausibility import (check_scan_coordinates, check_scan_frame_size, check_scan_points,
+from benchmark.data.observations import PointCloudSequence
+from benchmark.core.plausibility import (check_scan_coordinates, check_scan_frame_size, check_scan_points,
                                     check_timestamps)
-from benchmark.surface_sampling import sample_surface
+from benchmark.core.surface_sampling import sample_surface
 
 log = logging.getLogger(__name__)
 
@@ -393,7 +393,7 @@ class ScanSequence:
 
     @property
     def duration(self) -> float:
-        """Span plus one median frame period, as :attr:`benchmark.motion.Motion.duration`."""
+        """Span plus one median frame period, as :attr:`benchmark.core.motion.Motion.duration`."""
         return float(self.timestamps[-1] - self.timestamps[0]) + 1.0 / self.capture_fps
 
     def _read_frame(self, i: int, warnings: list[str]) -> np.ndarray:

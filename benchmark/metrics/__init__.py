@@ -5,7 +5,7 @@
 - :mod:`.surface`: point-to-surface Chamfer (exact point-to-triangle distances).
 - :mod:`.pose`: MPJPE, PA-MPJPE, V2V, mean acceleration, acceleration error, frame reductions.
 - :mod:`.perf`: side-by-side timing of the Chamfer backends (part of ``python -m benchmark perf``,
-  :mod:`benchmark.perf`).
+  :mod:`benchmark.tools.perf`).
 """
 
 from benchmark.metrics.chamfer import chamfer_distance, chamfer_loss, nearest_neighbors

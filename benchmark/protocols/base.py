@@ -1,8 +1,8 @@
-"""The protocol interface: what the runner (:func:`benchmark.protocols.table_run.run_table`) asks of
+"""The protocol interface: what the runner (:func:`benchmark.run.table_run.run_table`) asks of
 a table's rules.
 
 A table spec (``benchmark/tables/<name>.yaml``, or a spec registered by another package:
-:mod:`benchmark.catalog`) names its protocol in its ``protocol`` field; the protocol registry
+:mod:`benchmark.run.catalog`) names its protocol in its ``protocol`` field; the protocol registry
 (:mod:`benchmark.protocols.registry`, entry-point group ``benchmark.protocols``) maps that name to a
 :class:`Protocol` subclass, and the runner builds one instance per run. The runner owns everything
 else: choosing the sequences, building the adapters, planning the work units and their spec
@@ -32,14 +32,14 @@ class Protocol:
     :meth:`make_source` and :meth:`run_unit`; the other methods have defaults.
 
     The unit result :meth:`run_unit` returns (checked by
-    :func:`benchmark.work_units.validate_unit_result`)::
+    :func:`benchmark.core.work_units.validate_unit_result`)::
 
         {unit_id, spec_hash, prior, cell, sequence_ids, fingerprint,
          per_sequence: [{id, frames, sums: {<SI metric>: sum over frames}}],
          timings: {fit_s, eval_s}, device, na_reason: None, ...}
 
     ``sums`` hold each metric of the spec's ``metrics`` in SI units (``foo_m`` for a reported
-    ``foo_mm``, ``foo_rad`` for ``foo_deg``: :data:`benchmark.work_units.UNIT_CONVERSIONS`) summed
+    ``foo_mm``, ``foo_rad`` for ``foo_deg``: :data:`benchmark.core.work_units.UNIT_CONVERSIONS`) summed
     over the sequence's frames; the table is their frame-weighted means.
     """
 
@@ -48,7 +48,7 @@ class Protocol:
     def load_motions(self, spec: dict, data: str | None, body) -> dict:
         """The test motions by id: the synthetic test split (``data`` None) or ``--data``, each
         at least ``spec["data"]["window_s"]`` long, shapes adapted to ``body``."""
-        from benchmark.table_data import load_motions
+        from benchmark.data.table_data import load_motions
 
         return load_motions(data, float(spec["data"]["window_s"]), body)
 
@@ -66,8 +66,8 @@ class Protocol:
 
     def unit_cost(self, unit, spec: dict, profile: dict) -> float:
         """A unit's relative cost, for longest-first ordering (default:
-        :func:`benchmark.work_units.estimate_cost`)."""
-        from benchmark.work_units import estimate_cost
+        :func:`benchmark.core.work_units.estimate_cost`)."""
+        from benchmark.core.work_units import estimate_cost
 
         return estimate_cost(unit)
 

@@ -29,7 +29,7 @@ import time
 import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
-from benchmark.observations import PointCloudSequence
+from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.facing import FACING_RULES, facing_search, observed_facing
 from benchmark.protocols.fit_state import FitState, body_parameters, init_state, optimise, parameter_groups
 from benchmark.protocols.start_search import (START_SEARCH_RULES, encoded_start, is_prior_free, limb_start_search,
@@ -85,7 +85,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     else:
         state = init_state(adapter, body, batch, generator, device, data_term=data_term, latent_init=latent_init)
 
-    trace = []  # (B,) data term of every step: the convergence diagnostics (benchmark.fit_diagnostics)
+    trace = []  # (B,) data term of every step: the convergence diagnostics (benchmark.core.fit_diagnostics)
     sampler = None
     if points_per_step is not None:
         sampler = torch.Generator().manual_seed(int(torch.randint(0, 2**62, (1,), generator=generator)))

@@ -16,13 +16,13 @@ import time
 import numpy as np
 import torch
 
-from benchmark.degrade import degrade, fingerprint
-from benchmark.fit_diagnostics import sequence_diagnostics
-from benchmark.observations import make_scans
+from benchmark.data.degrade import degrade, fingerprint
+from benchmark.core.fit_diagnostics import sequence_diagnostics
+from benchmark.data.observations import make_scans
 from benchmark.protocols.completion import decode_output, fit, observation_batch
 from benchmark.protocols.unit_data import UnitData
-from benchmark.surface_sampling import sample_surface
-from benchmark.work_units import stable_seed
+from benchmark.core.surface_sampling import sample_surface
+from benchmark.core.work_units import stable_seed
 
 log = logging.getLogger(__name__)
 
@@ -384,7 +384,7 @@ def start_search_rule(spec: dict) -> str:
 
 def unit_ground_truth_pose(data_source: CompletionData, sequence_ids, data: UnitData):
     """(rotations (B, T, 22, 3, 3), translation (B, T, 3), shape) of the ground truth at the unit's output timestamps."""
-    from benchmark.unit_arrays import ground_truth_pose
+    from benchmark.data.unit_arrays import ground_truth_pose
 
     d = data_source.spec["data"]
     start = float(d.get("window_start_s", 0.0))
@@ -396,8 +396,8 @@ def unit_ground_truth_pose(data_source: CompletionData, sequence_ids, data: Unit
 
 def unit_arrays(unit, data: UnitData, batch, rot, trans, shape, gt_pose) -> dict:
     """The fitted and ground-truth motion at the output timestamps and a subsample of the
-    observation, for the report's animations (:mod:`benchmark.unit_arrays`)."""
-    from benchmark.unit_arrays import fit_arrays
+    observation, for the report's animations (:mod:`benchmark.data.unit_arrays`)."""
+    from benchmark.data.unit_arrays import fit_arrays
 
     gt_rot, gt_trans, gt_shape = gt_pose
     return fit_arrays(unit, data.out_t, rot, trans, shape, gt_rot, gt_trans, gt_shape, batch.timestamps,
@@ -414,12 +414,12 @@ def make_source(spec: dict, body, motions_by_id: dict, seed: int):
 
 
 def load_motions(spec: dict, data: str | None, body) -> dict:
-    """--data: captured scans (``scans=DIR``, scan_completion.py) or motions (:func:`benchmark.table_data.load_motions`)."""
+    """--data: captured scans (``scans=DIR``, scan_completion.py) or motions (:func:`benchmark.data.table_data.load_motions`)."""
     if data and data.startswith("scans="):
         from benchmark.protocols.scan_completion import load_scan_sequences
 
         return load_scan_sequences(spec, data)
-    from benchmark.table_data import load_motions as load_motion_files
+    from benchmark.data.table_data import load_motions as load_motion_files
 
     return load_motion_files(data, float(spec["data"]["window_s"]), body)
 

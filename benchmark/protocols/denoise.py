@@ -3,11 +3,11 @@
 Data: clean 2 s windows at 30 fps of the test motions (:class:`benchmark.protocols.motion_fit.MotionSource`),
 ground truth posed on the body with each motion's own shape, which is fixed (never optimised).
 
-Observation of a cell ``sigma`` (:func:`benchmark.observations.make_noisy_joints`): Gaussian noise of
+Observation of a cell ``sigma`` (:func:`benchmark.data.observations.make_noisy_joints`): Gaussian noise of
 standard deviation sigma (rad) on each of the 22 x 3 axis-angle components of every frame (root
 included; translation and shape stay clean). The observed data are the noisy joints (joint positions
 of the noisy pose) and ``data.num_markers`` virtual markers (a fixed farthest-point subset of the
-mesh vertices, :func:`benchmark.observations.virtual_marker_indices`) of the noisy pose; the noisy
+mesh vertices, :func:`benchmark.data.observations.virtual_marker_indices`) of the noisy pose; the noisy
 rotations and the translation are given too (the paper initialises from the noisy SMPL parameters).
 The noise of a sequence is drawn from ``stable_seed("denoise-noise", table seed, sigma, sequence id)``:
 it depends on nothing else (not the prior, the mode, the batch), so every prior sees the same
@@ -40,14 +40,14 @@ import time
 
 import torch
 
-from benchmark.degrade import fingerprint
+from benchmark.data.degrade import fingerprint
 from benchmark.metrics.pose import mean_acceleration, mpjpe
-from benchmark.observations import NoisyJoints, make_noisy_joints, virtual_marker_indices
+from benchmark.data.observations import NoisyJoints, make_noisy_joints, virtual_marker_indices
 from benchmark.protocols.motion_fit import (
     MotionSource, MotionTargets, Timer, decode_parameters, fit_motion, init_motion_state,
     is_interpolation_baseline, joints_of, load_table_motions, objective_value, unit_result, v2v_sums,
 )
-from benchmark.work_units import na_result, stable_seed
+from benchmark.core.work_units import na_result, stable_seed
 from priors.base import MotionDenoiser, has_motion_encoder
 
 MODES = ("regression", "optimisation")

@@ -11,7 +11,7 @@ from collections import OrderedDict
 import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
-from benchmark.observations import PointCloudSequence
+from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, init_state,
                                              optimise, repeat_batch, rigid_parameters, set_yaw, subset_batch,
                                              subset_data_term)
@@ -80,7 +80,7 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
 
 def mean_heading(state: FitState, batch: FitBatch) -> torch.Tensor:
     """(B,) circular mean over the observed frames of the heading (yaw of the root's +z axis about +y) of ``state``."""
-    from benchmark.frames import heading
+    from benchmark.core.frames import heading
 
     rot, _ = body_parameters(state, batch.timestamps, observed=True)
     yaw = heading(rot[:, :, 0])  # (B, n)
@@ -95,8 +95,8 @@ FACING_CACHE_SIZE = 16
 
 def facing_key(body, batch: FitBatch, device, lr: float, lambda_prior: float) -> tuple:
     """What :func:`observation_facing`'s result depends on: the observation's content (its
-    :func:`~benchmark.degrade.fingerprint`), the body, the device, the objective and the search's sizes."""
-    from benchmark.degrade import fingerprint
+    :func:`~benchmark.data.degrade.fingerprint`), the body, the device, the objective and the search's sizes."""
+    from benchmark.data.degrade import fingerprint
 
     obs = PointCloudSequence(points=batch.points.detach().cpu(), lengths=batch.lengths.cpu(),
                              timestamps=batch.timestamps.detach().cpu())

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import roma
 import torch
 
-from benchmark.interpolate import lerp_frames, slerp_frames
+from benchmark.core.interpolate import lerp_frames, slerp_frames
 from benchmark.metrics.static_chamfer import StaticChamfer
 from priors.base import Decoded, FitBatch, PriorAdapter
 

@@ -40,7 +40,7 @@ import time
 
 import torch
 
-from benchmark.interpolate import lerp_frames, slerp_frames
+from benchmark.core.interpolate import lerp_frames, slerp_frames
 from benchmark.metrics.pose import acceleration_error, mean_acceleration, mpjpe, pa_mpjpe
 from benchmark.protocols.motion_fit import (
     MotionSource, MotionTargets, Timer, decode_parameters, fit_motion, init_motion_state,

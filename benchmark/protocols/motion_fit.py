@@ -46,9 +46,9 @@ from dataclasses import dataclass, field
 import roma
 import torch
 
-from benchmark.motion_posing import body_float
+from benchmark.core.motion_posing import body_float
 from benchmark.protocols.fit_state import FitState, body_parameters, init_state, optimise, set_rigid
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.skeleton import NUM_JOINTS
 from priors.base import FitBatch, InterpolationBaseline, has_motion_encoder
 
 log = logging.getLogger(__name__)
@@ -74,7 +74,7 @@ def device_name(device) -> str:
             return torch.cuda.get_device_name(torch.device(d))
         except Exception:  # never let a name take a run down
             return d
-    from benchmark.provenance import cpu_name
+    from benchmark.core.provenance import cpu_name
 
     return cpu_name() or d
 
@@ -118,7 +118,7 @@ def motion_shapes(body, motions, dtype, device) -> torch.Tensor:
         s = torch.as_tensor(s).reshape(-1)
         if s.numel() != body.shape_dim:
             raise ValueError(f"motion {m.source or '?'}: its shape vector has {s.numel()} values, body {body.name!r} "
-                             f"takes {body.shape_dim}; load motions through benchmark.table_data.load_motions "
+                             f"takes {body.shape_dim}; load motions through benchmark.data.table_data.load_motions "
                              "(which fits shapes to the body)")
         rows.append(s.to(device=device, dtype=dtype))
     return torch.stack(rows)
@@ -135,9 +135,9 @@ def table_window(spec: dict) -> tuple[float, float, float]:
 
 
 def load_table_motions(spec: dict, data, body, longest_window_s: float | None = None) -> dict:
-    """The test motions of a motion table: :func:`benchmark.table_data.load_motions`, long enough
+    """The test motions of a motion table: :func:`benchmark.data.table_data.load_motions`, long enough
     for the window."""
-    from benchmark.table_data import load_motions
+    from benchmark.data.table_data import load_motions
 
     _, start, window = table_window(spec)
     return load_motions(data, start + (longest_window_s or window), body)
@@ -423,7 +423,7 @@ class Timer:
 
 
 def unit_result(unit, fingerprint: str, per_sequence: list, fit_s: float, eval_s: float, device, **extra) -> dict:
-    """The unit-result dict of benchmark.work_units (plus ``device_name`` and any extra fields)."""
+    """The unit-result dict of benchmark.core.work_units (plus ``device_name`` and any extra fields)."""
     for sid, row in zip(unit.sequence_ids, per_sequence):
         row["id"] = sid
         row["sums"] = {k: float(v) for k, v in row["sums"].items()}

@@ -2,7 +2,7 @@
 
 A table spec's ``protocol`` field names a protocol; this registry maps the name to a
 :class:`benchmark.protocols.base.Protocol` subclass. It mirrors the prior registry
-(:mod:`benchmark.registry`): an entry point is a ``"module:Class"`` placeholder imported on first
+(:mod:`benchmark.run.registry`): an entry point is a ``"module:Class"`` placeholder imported on first
 use; a protocol that fails to import is reported by name, never takes the CLI down; the project's
 own protocols register through the same group (``pyproject.toml``) as another package's would;
 :func:`register` / :func:`unregister` add and remove one for the running process (tests,

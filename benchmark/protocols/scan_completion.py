@@ -12,7 +12,7 @@ states them; docs/captures.md repeats them for users):
   t0 + k / F, k = 0 .. window*F - 1. When the capture rate is a multiple of F this is "keep every
   k-th frame", exactly the synthetic rule; otherwise the largest time offset is recorded per
   sequence (``obs_time_offset_max_s``). Points: the same seeded random subset per frame as
-  :func:`benchmark.degrade.degrade`.
+  :func:`benchmark.data.degrade.degrade`.
 - Ground truth for the Chamfer columns, at each 30 fps output timestamp t: the dense capture frame
   at t when there is one (always, for capture rates that are multiples of 30 fps); otherwise the
   capture frame nearest in time, t_i, interpolated to t: each of its points moves the fraction
@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from benchmark.loaders.scans import ScanSequence, find_scan_sequences, parse_scan_data
-from benchmark.observations import PointCloudSequence
+from benchmark.data.observations import PointCloudSequence
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +115,7 @@ class ScanCompletionData:
 
     def unit_data(self, sequence_ids: list[str]):
         from benchmark.protocols.unit_data import UnitData
-        from benchmark.work_units import stable_seed
+        from benchmark.core.work_units import stable_seed
 
         key = tuple(sequence_ids)
         if key in self._cache:
@@ -149,7 +149,7 @@ class ScanCompletionData:
     def observe(self, sequence_ids: list[str], points: int | None, fps: float, seed: int) -> tuple[PointCloudSequence, list]:
         """The cell's observation (nearest capture frames at ``fps``, then a seeded random point
         subset) and, per sequence, the largest |observed frame time - nominal instant| in seconds."""
-        from benchmark.degrade import degrade
+        from benchmark.data.degrade import degrade
 
         n = int(round(float(self.spec["data"]["window_s"]) * fps))
         clouds, times, offsets = [], [], []

@@ -18,8 +18,8 @@ Data (:func:`load_motions`, :class:`~benchmark.protocols.sls_data.SlsData`)
     makes the first anchor's root face +z and its root translation sits at x = z = 0 (height
     kept). Its id is ``<motion id>#c<k>``.
     Ground truth at the anchors: the posed mesh and joints, the 16 landmarks (the vertices
-    ``body.landmark_indices``, :data:`benchmark.skeleton.LANDMARK_NAMES`) and two independent dense
-    scans of ``data.points_per_scan`` points (:func:`benchmark.surface_sampling.sample_surface`): the
+    ``body.landmark_indices``, :data:`benchmark.core.skeleton.LANDMARK_NAMES`) and two independent dense
+    scans of ``data.points_per_scan`` points (:func:`benchmark.core.surface_sampling.sample_surface`): the
     *input scan* (what the observation is cut from) and the *evaluation scan* (what the metric is
     measured against), so the metric never rewards fitting the particular input sample. Every
     random draw is seeded per sequence from (table seed, sequence id): a sequence's data does not
@@ -62,7 +62,7 @@ cycle's first anchor. Protocol v1 (``heading8``) ran table1 v1's 8-yaw T-pose sc
 turned landmark-only fits backwards; ``search`` runs table1 v2's coarse multi-hypothesis search.
 The body shape has its own learning rate, ``objective.shape_lr_scale`` x lr. Every unit records,
 per sequence, the root-orientation and facing errors, a backwards flag, the final data terms and
-their decrease over the last 10 % of the steps (:mod:`benchmark.fit_diagnostics`).
+their decrease over the last 10 % of the steps (:mod:`benchmark.core.fit_diagnostics`).
 
 Variables: the adapter's latents, the body shape and the free rigid parameters that
 :func:`benchmark.protocols.fit_state.init_state` gives the adapter (per-observed-anchor root
@@ -100,12 +100,12 @@ import time
 
 import torch
 
-from benchmark.fit_diagnostics import sequence_diagnostics
+from benchmark.core.fit_diagnostics import sequence_diagnostics
 from benchmark.protocols.completion_unit import evaluate, loss_vertex_count
 from benchmark.protocols.sls_cycles import align_first_anchor, cut_cycles
 from benchmark.protocols.sls_data import Observation, SlsData, SlsUnitData, observe
 from benchmark.protocols.sls_fit import decode_anchors, fit_sls, uses_anchor_decoder
-from benchmark.unit_arrays import ground_truth_pose
+from benchmark.data.unit_arrays import ground_truth_pose
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +146,7 @@ def load_motions(spec: dict, data: str | None, body) -> dict:
 
 def source_motions(data: str | None, body) -> dict:
     """The whole test motions by id (the synthetic test split, or ``--data``); tests replace this."""
-    from benchmark.table_data import load_motions as load_table_motions
+    from benchmark.data.table_data import load_motions as load_table_motions
 
     return load_table_motions(data, 0.0, body)
 
@@ -201,8 +201,8 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: SlsData, de
 
 def unit_arrays(unit, data: SlsUnitData, obs: Observation, rot, trans, shape, gt_pose) -> dict:
     """The fitted and ground-truth motion at the anchors and a subsample of the observed scans,
-    for the report's animations (:mod:`benchmark.unit_arrays`)."""
-    from benchmark.unit_arrays import fit_arrays
+    for the report's animations (:mod:`benchmark.data.unit_arrays`)."""
+    from benchmark.data.unit_arrays import fit_arrays
 
     gt_rot, gt_trans, gt_shape = gt_pose
     t0 = data.anchor_t[:, :1]

@@ -20,7 +20,7 @@ import math
 import roma
 import torch
 
-from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from benchmark.core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 
 def fallback_cycles(motion, min_s: float = 0.3, max_s: float = 3.0, max_cycles: int | None = None) -> list[tuple[float, float]]:

@@ -11,11 +11,11 @@ from dataclasses import dataclass
 
 import torch
 
-from benchmark.degrade import degrade, fingerprint
-from benchmark.observations import Landmarks, PointCloudSequence, ground_truth_at
+from benchmark.data.degrade import degrade, fingerprint
+from benchmark.data.observations import Landmarks, PointCloudSequence, ground_truth_at
 from benchmark.protocols.unit_data import UnitData
-from benchmark.surface_sampling import sample_surface
-from benchmark.work_units import stable_seed
+from benchmark.core.surface_sampling import sample_surface
+from benchmark.core.work_units import stable_seed
 
 
 @dataclass

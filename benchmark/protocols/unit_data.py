@@ -1,7 +1,7 @@
 """The inputs of a completion work unit; shared by the synthetic
 (:mod:`benchmark.protocols.completion_unit`) and captured-scan
 (:mod:`benchmark.protocols.scan_completion`) data sources, which import it and not each other (the
-seeds derived from a unit's coordinates: :func:`benchmark.work_units.stable_seed`)."""
+seeds derived from a unit's coordinates: :func:`benchmark.core.work_units.stable_seed`)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""From a unit's stored arrays (:mod:`benchmark.unit_arrays`) to meshes, errors and animations."""
+"""From a unit's stored arrays (:mod:`benchmark.data.unit_arrays`) to meshes, errors and animations."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from benchmark.fit_diagnostics import root_errors
+from benchmark.core.fit_diagnostics import root_errors
 from benchmark.report.render import render_frames, save_animation
 
 
@@ -111,7 +111,7 @@ def animate(motion: SequenceMotion, body, path, title: str = "", size=(150, 200)
     ``fps``: the animation's frame rate: every k-th frame of the motion's own rate (k rounded),
     None: every frame. Each observed frame is drawn on the rendered frame nearest to it.
     """
-    from benchmark.skeleton import PARENTS
+    from benchmark.core.skeleton import PARENTS
 
     rate = 1.0 / float(np.median(np.diff(motion.t))) if len(motion.t) > 1 else 30.0
     step = max(1, int(round(rate / fps))) if fps else 1

@@ -4,7 +4,7 @@ no script; relative links only.
 
 What it reads (:mod:`benchmark.report.run_folder`): the table JSONs at the top of the run folder,
 the unit JSONs under ``units/`` (per-sequence metrics, fit logs) and, beside each unit JSON, the
-fitted and ground-truth motion (``<unit_id>.npz``, :mod:`benchmark.unit_arrays`). Units run before
+fitted and ground-truth motion (``<unit_id>.npz``, :mod:`benchmark.data.unit_arrays`). Units run before
 those arrays were stored get no animation and the page says so where the animation would be.
 """
 

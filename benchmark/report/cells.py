@@ -1,5 +1,5 @@
 """A cell's part of the report (:mod:`benchmark.report.build`): per-sequence diagnostics from the
-stored fitted motions (:mod:`benchmark.unit_arrays`), the animations to render and their
+stored fitted motions (:mod:`benchmark.data.unit_arrays`), the animations to render and their
 rendering, here or in worker processes."""
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def diagnose(run, cr: CellReport, img_dir: Path, sequences: int, fmt: str, body_
               jobs: list) -> None:
     """Per-sequence diagnostics of a cell from its stored root rotations; queue its animations."""
     from benchmark.report.animate import check_arrays, root_diagnostics
-    from benchmark.unit_arrays import read_arrays
+    from benchmark.data.unit_arrays import read_arrays
 
     if not cr.units:
         cr.no_animation = "no unit file for this cell under units/"
@@ -119,7 +119,7 @@ _WORKER_CACHE: dict = {}  # per process: body models and skinned ground truths
 def render_animation(npz: str, index: int, out: str, title: str, body_spec: str, size, fps: float) -> float:
     """Skin, render and write one animation; returns the sequence's mean V2V error (mm)."""
     from benchmark.report.animate import animate, sequence_motion
-    from benchmark.unit_arrays import read_arrays
+    from benchmark.data.unit_arrays import read_arrays
 
     body = _body(body_spec, _WORKER_CACHE.setdefault("bodies", {}))
     motion = sequence_motion(read_arrays(npz), index, body, _WORKER_CACHE.setdefault("gt", {}))
@@ -189,6 +189,6 @@ def _body(spec: str, cache: dict):
 
 
 def cell_text(cell: dict) -> str:
-    from benchmark.writers import cell_label
+    from benchmark.run.writers import cell_label
 
     return cell_label(cell, list(cell))

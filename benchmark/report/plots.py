@@ -96,7 +96,7 @@ def _save(fig, path: Path) -> Path:
 
 def sweep_plots(table: dict, metric: str, out_dir: Path, colours: dict, stem: str) -> list[tuple[str, Path]]:
     """(caption, path) of the plots of ``metric`` against each numeric axis of the table's grid."""
-    from benchmark.writers import metric_label
+    from benchmark.run.writers import metric_label
 
     plt = _plt()
     coords = _coords(table)
@@ -156,7 +156,7 @@ def sweep_plots(table: dict, metric: str, out_dir: Path, colours: dict, stem: st
 
 
 def _bars(table, metric, out_dir, colours, stem):
-    from benchmark.writers import cell_label, metric_label
+    from benchmark.run.writers import cell_label, metric_label
 
     plt = _plt()
     keys = list(table["grid"])
@@ -178,7 +178,7 @@ def _bars(table, metric, out_dir, colours, stem):
 
 def spread_plot(table: dict, metric: str, seq_values: dict, out_dir: Path, colours: dict, stem: str):
     """Strip plot: ``seq_values[(prior, cell index)]`` = per-sequence values; mean as a bar."""
-    from benchmark.writers import cell_label, metric_label
+    from benchmark.run.writers import cell_label, metric_label
 
     plt = _plt()
     keys = list(table["grid"])

@@ -221,7 +221,7 @@ def render_frames(fit_vertices, gt_vertices, faces, gt_joints, parents, root_err
 def heading_mean(gt_vertices, gt_joints) -> np.ndarray:
     """The ground truth's mean facing direction from its hips and shoulders (robust to the body
     model's axes): the horizontal normal of the left-right axis, on the side the chest points."""
-    from benchmark.skeleton import JOINT_INDEX
+    from benchmark.core.skeleton import JOINT_INDEX
 
     lr = (gt_joints[:, JOINT_INDEX["left_hip"]] - gt_joints[:, JOINT_INDEX["right_hip"]]
           + gt_joints[:, JOINT_INDEX["left_shoulder"]] - gt_joints[:, JOINT_INDEX["right_shoulder"]])

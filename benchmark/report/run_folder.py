@@ -7,8 +7,9 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmark.work_units import canonical_json, si_metric
-from benchmark.unit_arrays import arrays_path
+from benchmark.core.json_io import canonical_json
+from benchmark.core.work_units import si_metric
+from benchmark.data.unit_arrays import arrays_path
 
 log = logging.getLogger(__name__)
 
@@ -16,7 +17,7 @@ log = logging.getLogger(__name__)
 @dataclass
 class RunFolder:
     root: Path
-    tables: list  # table JSONs (benchmark.table_derive.derive_table), sorted by name
+    tables: list  # table JSONs (benchmark.run.table_derive.derive_table), sorted by name
     units: dict = field(default_factory=dict)  # table name -> (prior, cell key) -> [unit JSON, ...] (plan order)
     skipped: list = field(default_factory=list)  # (path, why) of files that could not be read
 

@@ -39,7 +39,7 @@ def about_html(table: dict) -> str:
 
 def metric_table(table: dict, metric: str, reports: dict, grid_keys: list) -> str:
     from benchmark.report.plots import paper_rows
-    from benchmark.writers import ARROWS, cell_label, format_number, metric_label
+    from benchmark.run.writers import ARROWS, cell_label, format_number, metric_label
 
     better = next((m.get("better") for m in table["metrics"] if m["name"] == metric), None)
     cells = table["rows"][0]["cells"]
@@ -85,7 +85,7 @@ def _convergence(units: list) -> str:
 
 
 def diagnostics_table(table: dict, reports: dict, grid_keys: list) -> str:
-    from benchmark.writers import cell_label
+    from benchmark.run.writers import cell_label
 
     cells = table["rows"][0]["cells"]
     head = "".join(f"<th>{esc(cell_label(c, grid_keys))}</th>" for c in cells)
@@ -120,7 +120,7 @@ def figure_html(path: Path, caption: str, img_dir: Path) -> str:
 
 def animation_section(table, reports, img_dir, plots, priors, cells, grid_keys) -> str:
     from benchmark.report.render import ERROR_MAX_MM
-    from benchmark.writers import cell_label
+    from benchmark.run.writers import cell_label
 
     legend = img_dir / "error_scale.png"
     if not legend.exists():
@@ -167,7 +167,7 @@ def _facing_grid(curves_by_cell, path, prior):
 
 
 def breakdown_section(table, reports, metric_names, grid_keys) -> str:
-    from benchmark.writers import cell_label, format_number, metric_label
+    from benchmark.run.writers import cell_label, format_number, metric_label
 
     parts = ["<h3>Sequence breakdown</h3>"]
     for (prior, i), cr in reports.items():

@@ -5,7 +5,7 @@
   and kicks in :mod:`~benchmark.synthetic.fighting`); :mod:`~benchmark.synthetic.posing` turns
   anatomical angles into SMPL-22 local rotations.
 - :mod:`~benchmark.synthetic.generator`: a plan of actions -> a sequence queryable at any
-  timestamp (cross-faded transitions) -> :class:`~benchmark.motion.Motion`.
+  timestamp (cross-faded transitions) -> :class:`~benchmark.core.motion.Motion`.
 - :mod:`~benchmark.synthetic.contact`: the ground-contact solver that stands the body on the floor.
 - :mod:`~benchmark.synthetic.rest`: the subject's rest skeleton and foot/hand contact points.
 - :mod:`~benchmark.synthetic.subjects`, :mod:`~benchmark.synthetic.plans`,

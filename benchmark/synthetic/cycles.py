@@ -24,7 +24,7 @@ each foot). The synthetic generator knows its phases, so no template matching is
 Then cycles shorter than ``min_s`` or longer than ``max_s`` (paper: 0.3 s, 3 s) or not inside
 the motion's frames are dropped. :func:`cycle_windows` resamples each cycle to ``anchors`` frames
 uniformly in [start, end] (both included; SLERP of the joint rotations, LERP of the translation
-between the motion's frames) and returns one :class:`~benchmark.motion.Motion` per cycle, in the
+between the motion's frames) and returns one :class:`~benchmark.core.motion.Motion` per cycle, in the
 world frame of its source (not aligned), timestamps 0 .. duration, with ``meta["cycle"]``.
 """
 
@@ -38,9 +38,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from benchmark.interpolate import resample_intervals
-from benchmark.motion import Motion
-from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from benchmark.core.interpolate import resample_intervals
+from benchmark.core.motion import Motion
+from benchmark.core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ their parameters), the subject, the seed, the initial heading and gait phase. A
   interpolated at query times. The root height is evaluated directly at the query times.
 - :meth:`SyntheticSequence.sample` takes any timestamps in [0, duration] (vectorised);
   :meth:`SyntheticSequence.to_motion` samples a uniform frame rate into a
-  :class:`~benchmark.motion.Motion`.
+  :class:`~benchmark.core.motion.Motion`.
 
 Everything is deterministic: the randomness lives in the plan (drawn from the plan's seed by
 :mod:`benchmark.synthetic.plans`); a sequence is a pure function of plan and skeleton.
@@ -29,9 +29,9 @@ import roma
 import torch
 
 from benchmark.body.lbs import forward_kinematics
-from benchmark.motion import Motion
-from benchmark.rotations import matrix_to_axis_angle, slerp_matrices
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.motion import Motion
+from benchmark.core.rotations import matrix_to_axis_angle, slerp_matrices
+from benchmark.core.skeleton import NUM_JOINTS
 from benchmark.synthetic.action_base import ActionInput
 from benchmark.synthetic.actions import get_action
 from benchmark.synthetic.contact import interp_uniform, solve_root_track

@@ -31,7 +31,7 @@ import math
 import roma
 import torch
 
-from benchmark.skeleton import JOINT_INDEX, MIRROR, NUM_JOINTS
+from benchmark.core.skeleton import JOINT_INDEX, MIRROR, NUM_JOINTS
 
 _DTYPE = torch.float64
 _HALF_PI = math.pi / 2
@@ -45,7 +45,7 @@ _AXES = {"X": 0, "Y": 1, "Z": 2}
 
 def _euler(angles: torch.Tensor, order: str) -> torch.Tensor:
     """(T, 3) angles -> (T, 3, 3) = R_order[0](a0) R_order[1](a1) R_order[2](a2) (intrinsic, as
-    :func:`benchmark.rotations.euler_to_matrix`), from three batched Rodrigues conversions."""
+    :func:`benchmark.core.rotations.euler_to_matrix`), from three batched Rodrigues conversions."""
     rv = angles.new_zeros(*angles.shape[:-1], 3, 3)
     for k, axis in enumerate(order):
         rv[..., k, _AXES[axis]] = angles[..., k]

@@ -22,8 +22,8 @@ from typing import Sequence
 import torch
 
 from benchmark.body.lbs import forward_kinematics
-from benchmark.motion import Motion
-from benchmark.skeleton import JOINT_INDEX
+from benchmark.core.motion import Motion
+from benchmark.core.skeleton import JOINT_INDEX
 from benchmark.synthetic.rest import skeleton_from_meta
 
 _DTYPE = torch.float64

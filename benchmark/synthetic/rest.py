@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from benchmark.skeleton import JOINT_INDEX, NUM_JOINTS
+from benchmark.core.skeleton import JOINT_INDEX, NUM_JOINTS
 
 _DTYPE = torch.float64
 

@@ -11,7 +11,7 @@ Each selected test sequence becomes one folder in the layout :mod:`benchmark.loa
                                         folders; ``--force`` replaces only such a folder's sequences
 
 Frames: ``points`` points per frame after the holes, sampled uniformly over the generator's posed
-mesh (``benchmark.observations.make_scans``) with i.i.d. Gaussian noise of ``noise_mm`` per axis;
+mesh (``benchmark.data.observations.make_scans``) with i.i.d. Gaussian noise of ``noise_mm`` per axis;
 holes: the ``holes`` fraction of each frame's points nearest to one random point of that frame is
 cut away (one contiguous patch, about that fraction of the surface, as an occluder would). Written
 in ``units`` with ``up`` as the up axis, so the loader's --units / --up conversions can be tested.
@@ -80,7 +80,7 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
                   body=None, overwrite: bool = False, table_capture: int | None = None,
                   table_spec: dict | None = None) -> list[Path]:
     """Write the scan set (module docstring); ``sequences``: a count (the same deterministic selection
-    as ``run``'s profiles: :func:`benchmark.work_units.select_sequences`) or a list of ids.
+    as ``run``'s profiles: :func:`benchmark.core.work_units.select_sequences`) or a list of ids.
 
     ``table_capture=SEED``: write, for each sequence, the very capture ``run table1 --seed SEED``
     synthesises for a one-sequence work unit (table1's capture rate, points per frame, scan noise
@@ -90,17 +90,17 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
     (``data make-scans`` loads ``benchmark/tables/table1.yaml``; tests use shorter windows).
     """
     from benchmark.loaders.scans import UNITS, Z_UP_TO_Y_UP
-    from benchmark.observations import make_scans
-    from benchmark.outdir import check_not_overlapping, claim_out_dir, remove_entries, write_marker
+    from benchmark.data.observations import make_scans
+    from benchmark.core.outdir import check_not_overlapping, claim_out_dir, remove_entries, write_marker
     from benchmark.synthetic.splits import build_split, cache_dir
-    from benchmark.work_units import select_sequences, stable_seed
+    from benchmark.core.work_units import select_sequences, stable_seed
 
     # every argument is checked before anything in `out` is touched; then only an earlier
-    # make-scans output is replaced (its marker lists it; benchmark.outdir.claim_out_dir)
+    # make-scans output is replaced (its marker lists it; benchmark.core.outdir.claim_out_dir)
     if not 0.0 <= holes < 1.0:
         raise ValueError(f"holes must be a fraction in [0, 1), got {holes}")
     if table_capture is not None and table_spec is None:
-        raise ValueError("table_capture: give table_spec, table1's spec (benchmark.catalog.load_table_spec('table1'))")
+        raise ValueError("table_capture: give table_spec, table1's spec (benchmark.run.catalog.load_table_spec('table1'))")
     if units not in UNITS or up not in ("y", "z"):
         raise ValueError(f"units must be one of {list(UNITS)} and up one of y, z; got {units!r}, {up!r}")
     for name, value, ok, rule in (("fps", fps, fps > 0, "> 0"), ("points", points, points >= 1, ">= 1"),

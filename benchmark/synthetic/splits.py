@@ -8,7 +8,7 @@ Splits (see ``datasets/synthetic.md``):
   30 fps, 2.5 hours; for training the embedded priors.
 - ``val``: 2 other subjects, 12 sequences each (8-12 s), 30 fps.
 
-``build_split(name)`` returns the split as a list of :class:`~benchmark.motion.Motion`, built on
+``build_split(name)`` returns the split as a list of :class:`~benchmark.core.motion.Motion`, built on
 the embedded Anny body by default (the generator stands each subject on its own mesh). Built
 splits are cached under ``datasets/cache/<split>/`` (git-ignored): one ``.npz`` per sequence and
 a ``manifest.json`` (split, seed, generator version, skeleton digest, per-file sha256). A cache
@@ -32,7 +32,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from benchmark.motion import Motion
+from benchmark.core.motion import Motion
 from benchmark.synthetic.generator import GENERATOR_VERSION, SequencePlan, SyntheticSequence
 from benchmark.synthetic.plans import plan_random_split, plan_test_split
 from benchmark.synthetic.rest import skeleton_source

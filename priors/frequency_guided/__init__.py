@@ -58,7 +58,7 @@ Inputs built by this module (where the paper's data are not available)
   RAnkle, LHip, LKnee, LAnkle, chest, neck, nose, head, LShoulder, LElbow, LWrist, RShoulder,
   RElbow, RWrist). The rest skeleton is stored with the weights: the embedded checkpoint holds the
   one it was trained with (``priors.training.fixed_rest_skeleton``); the paper size uses the
-  SMPL-like skeleton ``benchmark.skeleton.SMPL_LIKE_REST_JOINTS``.
+  SMPL-like skeleton ``benchmark.core.skeleton.SMPL_LIKE_REST_JOINTS``.
 - Heading normalisation (as Xu): the window's first root rotation is written R_0 = Ry(c) Rx(b) Rz(a)
   (scipy ``'zxy'`` extrinsic Euler), c = atan2(R_0[0, 2], R_0[2, 2]) is the heading of the body's
   +z axis; every frame's root and the translation (relative to frame 0) are pre-multiplied by

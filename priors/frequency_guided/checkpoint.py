@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from benchmark.safe_loading import STATE_DICT_FIX, torch_load_weights
+from benchmark.core.safe_loading import STATE_DICT_FIX, torch_load_weights
 from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.vposer.checkpoint import V1_WHERE_TO_GET as VPOSER_V1_WHERE, is_vposer_v1_state, load_vposer_v1_state
 from priors.frequency_guided.model import FrequencyGuidedNetwork, MotionPrior, PAPER_CONFIG

@@ -15,8 +15,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from benchmark.body.lbs import forward_kinematics
-from benchmark.frames import heading as heading_angle, yaw_matrix
-from benchmark.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
+from benchmark.core.frames import heading as heading_angle, yaw_matrix
+from benchmark.core.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
 from priors.vposer.model import NUM_BODY_JOINTS, VPoserV1, sixd_interleaved_to_matrix
 
 

@@ -14,7 +14,7 @@ import roma
 import torch
 from torch import nn
 
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.skeleton import NUM_JOINTS
 from priors import training
 from priors.vposer.model import NUM_BODY_JOINTS, VPoserV1
 from priors.frequency_guided.model import EMBEDDED_CONFIG, FPS, FrequencyGuidedNetwork, pseudo_vertices
@@ -251,7 +251,7 @@ def train_frequency_guided(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.frequency_guided.train --out priors/weights``: train the embedded weights."""
-    from benchmark import argtypes as at
+    from benchmark.core import argtypes as at
     from benchmark.synthetic.train_data import SyntheticTrainingData
 
     ap = training.recipe_parser("Train the embedded frequency-guided prior on the synthetic training split.",

@@ -9,7 +9,7 @@ initialised from N(0, I) as in the authors' completion code. ``decode`` returns 
 rotations of every window on the 30 fps grid, root orientation included; the SMPL-H index joints
 22/23 are dropped (joints 0..21 are used), and a model trained in the AMASS z-up world (official
 weights) has its root orientation (and trajectory) turned into the project's y-up world with
-``benchmark.frames.Z_UP_TO_Y_UP`` (models trained here are y-up already:
+``benchmark.core.frames.Z_UP_TO_Y_UP`` (models trained here are y-up already:
 ``config.world_up``). The decoder has no canonical heading, but the protocol still frees a yaw and
 an offset per sequence (``heading_normalised = True``), as for every prior whose decoder fixes the
 root orientation. Prior term: ``|z_l|^2 + |z_g|^2`` summed over every window and dimension
@@ -44,9 +44,9 @@ import math
 import torch
 from torch import nn
 
-from benchmark.frames import Z_UP_TO_Y_UP, matrix_to_sixd_columns, sixd_columns_to_matrix
-from benchmark.interpolate import slerp_frames
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.frames import Z_UP_TO_Y_UP, matrix_to_sixd_columns, sixd_columns_to_matrix
+from benchmark.core.interpolate import slerp_frames
+from benchmark.core.skeleton import NUM_JOINTS
 from priors.base import (
     Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionEncoder, PaperNetwork, PriorAdapter, Trainable, WindowSpec,
 )

@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from benchmark.safe_loading import UnsafeFileError, torch_load_weights
+from benchmark.core.safe_loading import UnsafeFileError, torch_load_weights
 from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.hmvae.model import PAPER_CONFIG, HMVAE, HMVAEConfig
 from priors.hmvae.skeleton import PARENTS24, frozen_parameter_names

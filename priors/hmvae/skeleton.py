@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from benchmark.skeleton import PARENTS
+from benchmark.core.skeleton import PARENTS
 
 PARENTS24 = tuple(PARENTS) + (20, 21)  # SMPL-22 + SMPL-H left_index1 (22), right_index1 (23)
 NUM_JOINTS24 = len(PARENTS24)

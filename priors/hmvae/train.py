@@ -62,8 +62,8 @@ import roma
 import torch
 
 from benchmark.body.lbs import forward_kinematics
-from benchmark.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
-from benchmark.skeleton import JOINT_INDEX, NUM_JOINTS
+from benchmark.core.frames import matrix_to_sixd_columns, sixd_columns_to_matrix
+from benchmark.core.skeleton import JOINT_INDEX, NUM_JOINTS
 from priors import training
 from priors.hmvae.checkpoint import learnable_state_dict
 from priors.hmvae.model import HMVAE, HMVAEConfig, kl_normal, parameter_summary
@@ -343,7 +343,7 @@ def main(argv: list[str] | None = None) -> None:
     """``python -m priors.hmvae.train --out priors/weights [--steps N] [--seed S] [--force]``."""
     import argparse
 
-    from benchmark import argtypes as at
+    from benchmark.core import argtypes as at
     from benchmark.synthetic.train_data import SyntheticTrainingData
 
     ap = argparse.ArgumentParser(description="Train the embedded HM-VAE and trajectory model on the synthetic split.")

@@ -8,8 +8,8 @@ import math
 import torch
 from torch import nn
 
-from benchmark.interpolate import lerp_frames, slerp_frames
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.interpolate import lerp_frames, slerp_frames
+from benchmark.core.skeleton import NUM_JOINTS
 from priors.base import (
     Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionDenoiser, MotionEncoder, PaperNetwork, PriorAdapter,
     Trainable, WindowSpec,

@@ -9,7 +9,7 @@ from typing import Callable
 
 import torch
 
-from benchmark.safe_loading import STATE_DICT_FIX, UnsafeFileError, torch_load_weights
+from benchmark.core.safe_loading import STATE_DICT_FIX, UnsafeFileError, torch_load_weights
 from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.motion_dvae.model import MotionDVAE, PAPER_CONFIG
 from priors.motion_dvae.states import FPS

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.skeleton import NUM_JOINTS
 from priors.motion_dvae.states import FPS, POSE_DIM, STATE_DIM, body_points, state_to_motion
 
 

@@ -12,9 +12,9 @@ import math
 import torch
 
 from benchmark.body.lbs import forward_kinematics
-from benchmark.frames import from_heading_frame, ground_origin, heading, to_heading_frame, yaw_matrix
-from benchmark.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.frames import from_heading_frame, ground_origin, heading, to_heading_frame, yaw_matrix
+from benchmark.core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from benchmark.core.skeleton import NUM_JOINTS
 
 
 FPS = 30.0

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.skeleton import NUM_JOINTS
 from priors import training
 from priors.motion_dvae.model import (
     EMBEDDED_CONFIG,
@@ -339,7 +339,7 @@ def train_motion_dvae(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.motion_dvae.train --out priors/weights``: train the embedded weights."""
-    from benchmark import argtypes as at
+    from benchmark.core import argtypes as at
     from benchmark.synthetic.train_data import SyntheticTrainingData
 
     # steps / denoise steps 0: skip that phase (needs --init)

@@ -7,8 +7,8 @@ import logging
 import torch
 from torch import nn
 
-from benchmark.frames import yaw_matrix
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.frames import yaw_matrix
+from benchmark.core.skeleton import NUM_JOINTS
 from priors.base import (
     Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionEncoder, PaperNetwork, PriorAdapter, Trainable, WindowSpec,
 )

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from benchmark.safe_loading import UnsafeFileError, torch_load_weights
+from benchmark.core.safe_loading import UnsafeFileError, torch_load_weights
 from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.sequential_primitives.model import ARCH_KEYS, FORMAT, PAPER_CONFIG, SequentialPrimitives
 

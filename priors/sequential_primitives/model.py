@@ -11,14 +11,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from benchmark.frames import (
+from benchmark.core.frames import (
     heading as root_heading,
     sixd_columns_to_matrix as gram_schmidt,
     to_heading_frame,
     yaw_matrix,
 )
-from benchmark.rotations import matrix_to_sixd
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.rotations import matrix_to_sixd
+from benchmark.core.skeleton import NUM_JOINTS
 
 
 FOOT_JOINTS = (10, 11)

@@ -16,9 +16,9 @@ import roma
 import torch
 
 from benchmark.body.lbs import forward_kinematics
-from benchmark.frames import yaw_matrix
-from benchmark.rotations import matrix_to_sixd, slerp_matrices
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.frames import yaw_matrix
+from benchmark.core.rotations import matrix_to_sixd, slerp_matrices
+from benchmark.core.skeleton import NUM_JOINTS
 from priors import training
 from priors.sequential_primitives.model import (
     EMBEDDED_CONFIG,
@@ -437,7 +437,7 @@ def train_sequential_primitives(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.sequential_primitives.train --out priors/weights``: train the embedded weights."""
-    from benchmark import argtypes as at
+    from benchmark.core import argtypes as at
     from benchmark.synthetic.train_data import SyntheticTrainingData
 
     ap = training.recipe_parser("Train the embedded sequential-primitives prior on the synthetic split.",

@@ -7,7 +7,7 @@ import logging
 import torch
 from torch import nn
 
-from benchmark.interpolate import lerp_frames, slerp_frames
+from benchmark.core.interpolate import lerp_frames, slerp_frames
 from priors.base import (
     AnchorDecoder, Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionEncoder, PaperNetwork, PriorAdapter, Trainable,
     WindowSpec,

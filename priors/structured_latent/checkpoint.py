@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from benchmark.safe_loading import UnsafeFileError, torch_load_weights
+from benchmark.core.safe_loading import UnsafeFileError, torch_load_weights
 from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.structured_latent.model import StructuredLatentCVAE
 

@@ -27,11 +27,11 @@ from dataclasses import dataclass
 import roma
 import torch
 
-from benchmark.frames import from_heading_frame, ground_origin, heading, to_heading_frame
-from benchmark.frames import sixd_columns_to_matrix as gram_schmidt
-from benchmark.interpolate import lerp_frames, slerp_frames
-from benchmark.rotations import matrix_to_sixd
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.frames import from_heading_frame, ground_origin, heading, to_heading_frame
+from benchmark.core.frames import sixd_columns_to_matrix as gram_schmidt
+from benchmark.core.interpolate import lerp_frames, slerp_frames
+from benchmark.core.rotations import matrix_to_sixd
+from benchmark.core.skeleton import NUM_JOINTS
 
 ANCHORS = 100
 FOOT_JOINTS = (10, 11)
@@ -74,7 +74,7 @@ def resample_anchors(rotations: torch.Tensor, trans: torch.Tensor, timestamps: t
 
 def yaw_matrix(yaw: torch.Tensor) -> torch.Tensor:
     """(...) angles -> (..., 3, 3) rotations about +y, by roma's rotation-vector map (this prior's
-    weights were trained with it; :func:`benchmark.frames.yaw_matrix`, the cos/sin form, differs
+    weights were trained with it; :func:`benchmark.core.frames.yaw_matrix`, the cos/sin form, differs
     in the last bits)."""
     zero = torch.zeros_like(yaw)
     return roma.rotvec_to_rotmat(torch.stack([zero, yaw, zero], dim=-1))
@@ -159,7 +159,7 @@ def expand_joints(model_rot: torch.Tensor) -> torch.Tensor:
 
 def sixd_columns_to_matrix(x: torch.Tensor) -> torch.Tensor:
     """(..., 6) "columns" 6D -> (..., 3, 3) by Gram-Schmidt with norms clamped at 1e-12
-    (:func:`benchmark.frames.sixd_columns_to_matrix`: elementwise ops, so a traced graph keeps
+    (:func:`benchmark.core.frames.sixd_columns_to_matrix`: elementwise ops, so a traced graph keeps
     every batch dimension dynamic; roma's flatten / unflatten freeze them)."""
     return gram_schmidt(x, eps=1e-12)
 

@@ -61,9 +61,9 @@ import numpy as np
 import torch
 
 from benchmark.body.lbs import forward_kinematics
-from benchmark.interpolate import resample_intervals
-from benchmark.rotations import matrix_to_sixd
-from benchmark.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
+from benchmark.core.interpolate import resample_intervals
+from benchmark.core.rotations import matrix_to_sixd
+from benchmark.core.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
 from priors.structured_latent.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_NAME
 from priors.structured_latent.gradnorm import GradNorm
 from priors.structured_latent.model import EMBEDDED_CONFIG, StructuredLatentCVAE, kl_divergence

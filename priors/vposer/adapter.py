@@ -7,7 +7,7 @@ import roma
 import torch
 from torch import nn
 
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.skeleton import NUM_JOINTS
 from priors.base import (
     Decoded, ExportableDecoder, ExportSpec, FitBatch, MotionEncoder, PaperNetwork, PriorAdapter, Trainable, WindowSpec,
 )

@@ -10,7 +10,7 @@ import logging
 import re
 from pathlib import Path
 
-from benchmark.safe_loading import is_lightning_bookkeeping, torch_load_weights, torch_load_with_stand_ins
+from benchmark.core.safe_loading import is_lightning_bookkeeping, torch_load_weights, torch_load_with_stand_ins
 from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.vposer.model import PAPER_CONFIG, VPoser, VPoserV1
 
@@ -74,8 +74,8 @@ OFFICIAL_FIX = (
 def _torch_load(file: Path) -> object:
     """torch.load on CPU with ``weights_only=True``. The bookkeeping a Lightning checkpoint pickles
     besides its tensors (callback classes, OmegaConf hyper-parameters) is read as inert stand-ins
-    (:func:`benchmark.safe_loading.is_lightning_bookkeeping`) and ignored; any other global is refused
-    (:class:`benchmark.safe_loading.UnsafeFileError`)."""
+    (:func:`benchmark.core.safe_loading.is_lightning_bookkeeping`) and ignored; any other global is refused
+    (:class:`benchmark.core.safe_loading.UnsafeFileError`)."""
     ckpt, stand_ins = torch_load_with_stand_ins(file, is_lightning_bookkeeping, OFFICIAL_FIX)
     if stand_ins:
         log.warning(

@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from benchmark.rotations import sixd_to_matrix
+from benchmark.core.rotations import sixd_to_matrix
 
 
 NUM_BODY_JOINTS = 21  # SMPL joints 1..21
@@ -98,7 +98,7 @@ def sixd_interleaved_to_matrix(x: torch.Tensor) -> torch.Tensor:
     The 6 numbers are a row-major 3x2 matrix: a1 = x[..., (0, 2, 4)], a2 = x[..., (1, 3, 5)];
     b1 = a1/|a1|, b2 = normalised (a2 - (b1.a2) b1), b3 = b1 x b2; R = [b1 b2 b3] (columns). Norms
     are clamped at 1e-12 as ``F.normalize`` does in the official code. Same numbers as
-    ``benchmark.rotations.sixd_to_matrix(x, "interleaved")``, but a 2-D input (N, 6) is handled with
+    ``benchmark.core.rotations.sixd_to_matrix(x, "interleaved")``, but a 2-D input (N, 6) is handled with
     ``reshape(-1, ...)`` only, so that an ONNX trace keeps N dynamic.
     """
     lead = x.shape[:-1]

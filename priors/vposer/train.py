@@ -12,7 +12,7 @@ import roma
 import torch
 
 from benchmark.body.lbs import forward_kinematics
-from benchmark.skeleton import NUM_JOINTS
+from benchmark.core.skeleton import NUM_JOINTS
 from priors import training
 from priors.vposer.model import EMBEDDED_CONFIG, NUM_BODY_JOINTS, VPoser
 from priors.vposer.checkpoint import DEFAULT_WEIGHTS
@@ -134,7 +134,7 @@ def train_vposer(
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m priors.vposer.train --out priors/weights --steps 15000 --seed 0``: train the embedded weights."""
-    from benchmark import argtypes as at
+    from benchmark.core import argtypes as at
     from benchmark.synthetic.train_data import SyntheticTrainingData
 
     ap = training.recipe_parser("Train the embedded VPoser on the synthetic training split.", DEFAULT_WEIGHTS, 15000)

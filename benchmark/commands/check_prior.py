@@ -1,0 +1,29 @@
+"""``check-prior``: the conformance kit (:func:`benchmark.tools.conformance.check_prior`): an adapter
+through a tiny table."""
+
+from __future__ import annotations
+
+import argparse
+
+from benchmark.run.registry import make_adapter
+
+
+def _cmd_check_prior(args) -> int:
+    from benchmark.tools.conformance import check_prior
+
+    # input errors (an unknown prior, a weights file torch cannot read) are errors, exit 2, not a
+    # conformance FAIL: construct once up front
+    make_adapter(args.name, size=args.size, weights=args.weights, device="cpu")
+    ok = check_prior(args.name, size=args.size, weights=args.weights)
+    return 0 if ok else 1
+
+
+def add_command(sub) -> None:
+    from benchmark.core import argtypes as at
+
+    fmt = argparse.ArgumentDefaultsHelpFormatter
+    p = sub.add_parser("check-prior", help="conformance kit: run an adapter through a tiny table", formatter_class=fmt)
+    p.add_argument("name")
+    p.add_argument("--size", choices=["embedded", "paper"], default="embedded")
+    p.add_argument("--weights", action=at.Once, default=None)
+    p.set_defaults(func=_cmd_check_prior)

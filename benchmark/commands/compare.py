@@ -1,0 +1,20 @@
+"""``compare``: per-cell differences between two table JSONs (:mod:`benchmark.tools.compare`)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def _cmd_compare(args) -> int:
+    from benchmark.tools.compare import main_compare
+
+    return main_compare(args.a, args.b, args.tol or [])
+
+
+def add_command(sub) -> None:
+    fmt = argparse.ArgumentDefaultsHelpFormatter
+    p = sub.add_parser("compare", help="per-cell differences between two table JSONs", formatter_class=fmt)
+    p.add_argument("a")
+    p.add_argument("b")
+    p.add_argument("--tol", action="append", metavar="METRIC=VALUE", help="tolerance in the metric's unit")
+    p.set_defaults(func=_cmd_compare)

@@ -1,0 +1,35 @@
+"""``fit-check``: fit a prior on one table1 cell and check the fit against its targets
+(:mod:`benchmark.tools.fit_check`)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_command(sub) -> None:
+    from benchmark.core import argtypes as at
+
+    p = sub.add_parser("fit-check", help="fit a prior (default no-prior) on one table1 cell and check the fit against "
+                                         "its targets (MPJPE, Chamfer, root error, backwards, convergence); exit 1 on a miss",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--prior", default="no-prior")
+    p.add_argument("--points", type=at.points, default=10000, help="a table1 cell's points per frame")
+    p.add_argument("--fps", type=at.fps, default=10, help="a table1 cell's observed frames per second")
+    p.add_argument("--profile", default=None, help="default: quick on CPU, full on CUDA")
+    p.add_argument("--device", default=None, help="cpu | cuda (default: cuda when available)")
+    p.add_argument("--out", default="runs/fit-check", help="unit files and the one-cell table (a rerun resumes)")
+    p.add_argument("--jobs", type=at.jobs, default=None, help="worker processes (default: the cores)")
+    p.add_argument("--start-search", default=None, choices=("none", "limbs", "observation"),
+                   help="override the table spec's objective.start_search (how per-frame priors search their start); "
+                        "default: the spec's rule")
+
+    def run(args) -> int:
+        from benchmark.commands.common import resolve_device
+        from benchmark.tools.fit_check import run_fit_check
+
+        fps = int(args.fps) if float(args.fps).is_integer() else args.fps
+        return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,
+                             device=resolve_device(args.device), out=args.out, jobs=args.jobs,
+                             start_search=args.start_search)
+
+    p.set_defaults(func=run)

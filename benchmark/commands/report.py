@@ -1,0 +1,85 @@
+"""``report``: the HTML report of a finished run (:func:`benchmark.report.build_report`)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+# what the report writes into its folder: index.html and img/ (img/.benchmark-report marks it)
+REPORT_ENTRIES = ("index.html", "img")
+
+
+def _is_table_file(path: Path) -> bool:
+    import json
+
+    from benchmark.report.run_folder import is_table
+
+    try:
+        return is_table(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, ValueError):
+        return False
+
+
+def check_report_args(run_dir, out) -> Path:
+    """Before anything loads or renders: RUN_DIR is a run folder (a file, such as RUN/table1.json, is
+    named as such, with the fix); --out (default RUN_DIR/report) is a writable folder, neither the
+    run folder nor around it (a folder inside it is fine: the default), and holds nothing but an
+    earlier report, which the report replaces. Returns the output folder."""
+    from benchmark.core.outdir import OutDirError, check_not_overlapping, check_out_dir
+
+    root = Path(run_dir)
+    if root.is_file():
+        raise FileNotFoundError(f"report: {root} is a file, not a run folder; pass the folder that holds it "
+                                f"(python -m benchmark report {root.parent}), the --out of 'python -m benchmark run'")
+    if not root.is_dir():
+        raise FileNotFoundError(f"report: run folder {root} does not exist (give the --out folder of "
+                                "'python -m benchmark run TABLE', default runs/latest)")
+    if not any(_is_table_file(f) for f in root.glob("*.json") if not f.name.startswith(".")):
+        raise FileNotFoundError(f"report: {root} holds no table JSON (a <table>.json with fields table, rows, grid, "
+                                f"metrics, written by "
+                                f"'python -m benchmark run TABLE --out {root}'); is this the run folder?")
+    folder = Path(out) if out is not None else root / "report"
+    check_not_overlapping(folder, [("run folder", root)], allow_inside=True)
+    if folder.is_dir():
+        entries = sorted(p.name for p in folder.iterdir())
+        index = folder / "index.html"
+        ours = (folder / "img" / ".benchmark-report").exists() or (
+            index.is_file() and "python -m benchmark report" in index.read_text(errors="replace"))
+        foreign = [n for n in entries if n not in REPORT_ENTRIES and n != ".lock"]
+        if entries and (not ours or foreign):
+            what = f"files the report did not write ({', '.join(foreign[:3])})" if ours else "files the report did not write"
+            raise OutDirError(f"--out {folder}: holds {what}; the report replaces its folder's index.html and img/, so "
+                              "nothing was written: choose an empty or new --out")
+    return check_out_dir(folder, min_free_bytes=1 << 20)
+
+
+def _cmd_report(args) -> int:
+    from benchmark.report import build_report
+
+    out = check_report_args(args.run_dir, args.out)
+    index = build_report(args.run_dir, out, sequences=args.sequences, animation_format=args.format,
+                         body_spec=args.body, animation_fps=args.animation_fps, workers=args.workers)
+    files = [p for p in index.parent.rglob("*") if p.is_file()]
+    size = sum(p.stat().st_size for p in files)
+    print(f"wrote {index} ({len(files)} files, {size / 1e6:.1f} MB); open it in a browser (works offline)")
+    return 0
+
+
+def add_command(sub) -> None:
+    from benchmark.core import argtypes as at
+    from benchmark.report.build import ANIMATION_FPS, DEFAULT_SEQUENCES
+
+    p = sub.add_parser("report", help="HTML report of a finished run: tables, plots, animated fits",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a run folder (the --out of 'run': <table>.json + units/)")
+    p.add_argument("--out", default=None, help="report folder (default: RUN_DIR/report)")
+    p.add_argument("--sequences", type=at.non_negative_int, default=DEFAULT_SEQUENCES,
+                   help="sequences to animate per prior x cell (0: no animations)")
+    p.add_argument("--format", choices=["webp", "gif"], default="webp", help="animation format")
+    p.add_argument("--animation-fps", type=at.Number(float, 1.0, 30.0, unit="frames per second"),
+                   default=ANIMATION_FPS, help="animation frame rate (30: every output frame, about twice the size)")
+    p.add_argument("--workers", type=at.jobs, default=min(2, os.cpu_count() or 1),
+                   help="processes rendering the animations")
+    p.add_argument("--body", default=None, help="body model to re-skin the stored fits (default: the run's)")
+    p.set_defaults(func=_cmd_report)

@@ -1,0 +1,60 @@
+"""``train``: train a prior's embedded weights on the synthetic training split (the recipe of its
+:class:`priors.base.Trainable`; the data handed over as ``dataset``)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def _cmd_train(args) -> int:
+    from benchmark.run.registry import get_prior_class
+
+    from benchmark.core.outdir import check_out_dir
+
+    cls = get_prior_class(args.name)
+    from priors.base import Trainable
+
+    if not (isinstance(cls, type) and issubclass(cls, Trainable)):
+        raise ValueError(f"prior {args.name!r} has no training recipe (it is not a priors.base.Trainable: "
+                         "no train_embedded classmethod)")
+    out = Path(args.out) if args.out is not None else None
+    from benchmark.synthetic.train_data import SyntheticTrainingData
+    from priors.training import WEIGHTS_DIR, training_session
+
+    # the weights folder first: a wrong --out fails in a second, not after hours of training
+    check_out_dir(out if out is not None else WEIGHTS_DIR, min_free_bytes=1 << 20,
+                  what="--out" if out is not None else "the weights folder")
+
+    # every loop of the recipe checkpoints here; --resume continues from it (priors/training.py)
+    state_dir = (out or WEIGHTS_DIR) / ".train_state" / args.name
+    if args.resume and not state_dir.exists():
+        raise FileNotFoundError(f"train {args.name} --resume: no training state in {state_dir}; start the training "
+                                f"without --resume (it checkpoints every {args.checkpoint_every} steps)")
+    with training_session(state_dir, resume=args.resume, checkpoint_every=args.checkpoint_every,
+                          val_every=args.val_every):
+        # the training data: the synthetic splits, handed to the recipe (priors never build data)
+        record = cls.train_embedded(out_dir=out, steps=args.steps, seed=args.seed, overwrite=args.force,
+                                    dataset=SyntheticTrainingData())
+    print(record)
+    return 0
+
+
+def add_command(sub) -> None:
+    from benchmark.core import argtypes as at
+
+    fmt = argparse.ArgumentDefaultsHelpFormatter
+    p = sub.add_parser("train", help="train a prior's embedded weights on the synthetic training split", formatter_class=fmt)
+    p.add_argument("name")
+    p.add_argument("--steps", type=at.positive_int, default=None, help="training steps (default: the recipe's)")
+    p.add_argument("--seed", type=at.seed, default=0)
+    p.add_argument("--out", default=None, help="output folder (default: priors/weights)")
+    p.add_argument("--force", action="store_true", help="overwrite existing weights")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted training from its last checkpoint (OUT/.train_state/NAME; add --force when "
+                        "the weights file exists)")
+    p.add_argument("--checkpoint-every", type=at.positive_int, default=200,
+                   help="save the resumable training state every N steps")
+    p.add_argument("--val-every", type=at.non_negative_int, default=500,
+                   help="log the validation loss every N steps (0: at the end only)")
+    p.set_defaults(func=_cmd_train)

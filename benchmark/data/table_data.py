@@ -1,0 +1,57 @@
+"""The test motions of a table (:func:`load_motions`): the synthetic test split, or ``--data``'s
+motion files, shapes made fit for the body; shared by the protocols, the runner and the commands.
+Which of them a profile runs: :func:`benchmark.core.work_units.select_sequences`."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from benchmark.core.motion import Motion, shape_for_body
+
+log = logging.getLogger(__name__)
+
+
+def load_motions(data: str | None, min_duration: float, body=None) -> dict:
+    """Test motions by id: the synthetic test split by default, or a folder of motion files (each
+    checked by its loader: :mod:`benchmark.core.plausibility`)."""
+    files_by_id = {}
+    if data is None:
+        from benchmark.synthetic.splits import build_split
+
+        motions = build_split("test")
+        by_id = {m.source: m for m in motions}
+    elif data.startswith("scans="):
+        raise ValueError(f"--data {data}: captured scans are read by the completion protocol (table1) only")
+    else:
+        from benchmark.loaders.amass import load_amass
+
+        root = Path(data.split("=", 1)[-1])
+        files = sorted(root.rglob("*.npz")) if root.is_dir() else [root]
+        if not files:
+            raise FileNotFoundError(f"--data {data}: no .npz motion files under {root}")
+        import numpy as np
+
+        by_id = {}
+        for f in files:
+            try:
+                with np.load(f, allow_pickle=False) as npz:
+                    keys = set(npz.files)
+            except Exception as exc:  # not a zip, a pickle, truncated...
+                raise ValueError(f"--data {data}: {f} is not a readable .npz file ({type(exc).__name__}: {exc}); "
+                                 "remove it from the folder or re-export it (python -m benchmark data convert)") from None
+            try:
+                m = load_amass(f) if "mocap_framerate" in keys or "mocap_frame_rate" in keys else Motion.load(f)
+            except KeyError as exc:
+                text = exc.args[0] if exc.args and isinstance(exc.args[0], str) and " " in exc.args[0] else \
+                    f"{f}: no field {exc} (fields present: {sorted(keys)})"
+                raise ValueError(f"--data {data}: {text}; convert the file with "
+                                 "`python -m benchmark data convert FILE --out FILE.npz`") from None
+            key = str(f.relative_to(root) if root.is_dir() else f.name)
+            by_id[key], files_by_id[key] = m, str(f)
+    if body is not None:
+        by_id = {k: shape_for_body(m, body, files_by_id.get(k)) for k, m in by_id.items()}
+    short = [k for k, m in by_id.items() if m.duration + 1e-6 < min_duration]
+    if short:
+        log.warning("skipping %d motions shorter than the %.1f s window: %s", len(short), min_duration, short[:5])
+    return {k: m for k, m in by_id.items() if k not in short}

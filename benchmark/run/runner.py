@@ -1,0 +1,247 @@
+"""Run work units: resume from stored results, execute the rest on a backend, store each result.
+
+:func:`run_units` owns the results store (``<out_dir>/units/<unit_id>.json``, one atomic JSON
+per unit) and the resume policy; a *backend* only executes units and hands each outcome back, so a
+crash or a preempted node loses one unit, not the table.
+
+Resume policies:
+
+- ``"only-missing"`` (default): a unit whose file exists with the same spec hash, is a valid result
+  and matches its own ``checksum`` (:func:`benchmark.core.work_units.unit_checksum`, written with it) is done
+  and reused. A file with another spec hash (the rules, profile sizes, the prior's weights -- by
+  content hash --, the sequences, the motion data they hold -- by content hash --, or the seed
+  changed), an invalid one, or one whose contents no longer match its checksum (edited by hand,
+  damaged) is moved aside to ``units/stale/<unit_id>.<old_hash[:8]>.json`` and the unit is rerun.
+- ``"never"``: every unit is rerun; existing files are moved aside the same way first.
+
+Before any unit runs, :func:`run_units` prints one line saying how many units it reuses, computes
+and moved aside (and why); the counts are in the :class:`RunReport` (the table run stores them in
+its provenance).
+
+Nothing is ever deleted: a stale name that is taken gets a ``.1``, ``.2``... suffix.
+
+Backends: ``"local"`` runs the units one after another in this process; ``"ray"`` runs each unit
+as a Ray task (:mod:`benchmark.run.backends`, which also has the multi-process local backend behind
+``--jobs N``). A backend is a callable ``backend(units, execute, on_done)`` that calls
+``on_done(unit, result, error)`` once per unit, in this process, as each unit finishes
+(``result`` the executor's dict, or ``error`` the exception it raised); see :data:`BACKENDS`.
+Results are stored and resumed the same way whatever the backend.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+from benchmark.run.backends import BACKENDS, Backend
+from benchmark.data.unit_arrays import ARRAYS_KEY, arrays_path, write_arrays
+from benchmark.core.json_io import atomic_write_json
+from benchmark.core.work_units import WorkUnit, checksum_problem, unit_path, validate_unit_result, with_checksum
+
+__all__ = ["RESUME_POLICIES", "RunReport", "progress_enabled", "run_units"]
+
+log = logging.getLogger(__name__)
+
+RESUME_POLICIES = ("only-missing", "never")
+
+Executor = Callable[[WorkUnit], dict]
+OnDone = Callable[[WorkUnit, "dict | None", "BaseException | None"], None]
+
+
+@dataclass
+class RunReport:
+    """What :func:`run_units` did.
+
+    results: unit_id -> result dict, for every unit that is done (reused or run), in plan order.
+    reused / ran: unit ids reused from disk / executed now (and stored).
+    failed: unit_id -> "ExceptionType: message" for units that raised or returned an invalid
+        result; nothing was stored for them.
+    moved: paths of stale files moved aside under ``units/stale/``.
+    """
+
+    results: dict[str, dict] = field(default_factory=dict)
+    reused: list[str] = field(default_factory=list)
+    ran: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+    moved: list[Path] = field(default_factory=list)
+    moved_why: dict[str, str] = field(default_factory=dict)
+    wall_s: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed
+
+    def __iter__(self):
+        """Unpacks as ``results, failures = run_units(...)``: the done results (a list, plan
+        order, ready for ``derive_table``) and the failures (unit_id -> message)."""
+        return iter((list(self.results.values()), dict(self.failed)))
+
+    def resume_counts(self) -> dict:
+        """What happened to stored unit files: for the table's provenance."""
+        reasons: dict[str, int] = {}
+        for why in self.moved_why.values():
+            key = why.split(" (", 1)[0]
+            reasons[key] = reasons.get(key, 0) + 1
+        return {"reused": len(self.reused), "recomputed": len(self.ran) + len(self.failed), "ran": len(self.ran),
+                "failed": len(self.failed), "moved_aside": len(self.moved), "moved_aside_reasons": reasons}
+
+    def summary(self) -> str:
+        text = (f"{len(self.ran)} unit(s) run, {len(self.reused)} reused, {len(self.failed)} failed, "
+                f"{len(self.moved)} stale file(s) moved aside, {self.wall_s:.1f} s")
+        if self.failed:
+            text += "\nfailed units:\n" + "\n".join(f"  {uid}: {msg}" for uid, msg in self.failed.items())
+        return text
+
+
+def progress_enabled(progress: bool | None) -> bool:
+    """Progress bars: ``None`` means on only when stdout is a terminal."""
+    if progress is None:
+        try:
+            return sys.stdout.isatty()
+        except (AttributeError, ValueError):
+            return False
+    return bool(progress)
+
+
+def move_aside(path: Path, unit_id: str, old_hash: str | None) -> Path:
+    """Move a stored result out of the way into ``units/stale/`` without overwriting anything."""
+    stale = path.parent / "stale"
+    stale.mkdir(parents=True, exist_ok=True)
+    tag = old_hash[:8] if old_hash else "unreadable"
+    target = stale / f"{unit_id}.{tag}.json"
+    n = 0
+    while target.exists():
+        n += 1
+        target = stale / f"{unit_id}.{tag}.{n}.json"
+    os.replace(path, target)
+    return target
+
+
+def _read_stored(path: Path, unit: WorkUnit) -> tuple[dict | None, str | None, str | None]:
+    """(valid result or None, the stored spec hash or None, why it is not reusable)."""
+    try:
+        stored = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        return None, None, f"unreadable ({exc})"
+    old_hash = stored.get("spec_hash") if isinstance(stored, dict) else None
+    if not isinstance(old_hash, str):
+        old_hash = None
+    if old_hash != unit.spec_hash:
+        return None, old_hash, "spec hash differs (its inputs, rules, sizes, weights or seed changed)"
+    try:
+        validate_unit_result(stored, unit, source=str(path))
+    except ValueError as exc:
+        return None, old_hash, f"invalid ({exc})"
+    problem = checksum_problem(stored)
+    if problem:
+        return None, old_hash, f"checksum mismatch ({problem})"
+    return stored, old_hash, None
+
+
+def run_units(
+    units: Sequence[WorkUnit],
+    execute: Executor,
+    out_dir: str | os.PathLike,
+    resume: str = "only-missing",
+    backend: str | Backend = "local",
+    progress: bool | None = None,
+    announce: bool = True,
+) -> RunReport:
+    """Run ``units`` with ``execute``, storing each result as ``<out_dir>/units/<unit_id>.json``.
+
+    execute: ``execute(unit) -> unit-result dict`` (see :mod:`benchmark.core.work_units`); its result is
+        validated against the unit (id, spec hash, sequences, finite sums) before it is stored.
+    resume: ``"only-missing"`` or ``"never"`` (see the module docstring).
+    backend: a name in :data:`BACKENDS`, or a backend callable (``benchmark.run.backends.make_backend``).
+    progress: tqdm bar; ``None``: only when stdout is a terminal.
+    announce: print the resume line (reused / to compute / moved aside) before running.
+
+    A unit that raises is logged with its id and the traceback, nothing is stored for it, the
+    others go on; the returned :class:`RunReport` lists it under ``failed`` (callers should exit
+    non-zero when ``not report.ok``).
+    """
+    if resume not in RESUME_POLICIES:
+        raise ValueError(f"unknown resume policy {resume!r}; choose one of {', '.join(RESUME_POLICIES)}")
+    if not callable(backend) and backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; available: {', '.join(sorted(BACKENDS))}")
+    run_backend = backend if callable(backend) else BACKENDS[backend]
+    ids = [u.unit_id for u in units]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"run_units: unit ids repeat: {sorted({i for i in ids if ids.count(i) > 1})[:5]}")
+
+    t0 = time.perf_counter()
+    report = RunReport()
+    done: dict[str, dict] = {}
+    todo: list[WorkUnit] = []
+    for unit in units:
+        path = unit_path(out_dir, unit.unit_id)
+        if not path.exists():
+            todo.append(unit)
+            continue
+        stored, old_hash, why = _read_stored(path, unit)
+        if resume == "only-missing" and stored is not None:
+            done[unit.unit_id] = stored
+            report.reused.append(unit.unit_id)
+            continue
+        target = move_aside(path, unit.unit_id, old_hash)
+        report.moved.append(target)
+        reason = "resume policy 'never'" if why is None else why
+        report.moved_why[unit.unit_id] = reason
+        log.log(logging.WARNING if why and why.startswith(("checksum", "invalid", "unreadable")) else logging.INFO,
+                "%s: stored result not reused (%s); moved to %s, rerunning", unit.unit_id, reason, target)
+        todo.append(unit)
+    if announce:
+        counts = report.resume_counts()["moved_aside_reasons"]
+        why = f" ({', '.join(f'{n} {k}' for k, n in counts.items())})" if counts else ""
+        print(f"work units in {Path(out_dir) / 'units'}: {len(report.reused)} reused, {len(todo)} to compute, "
+              f"{len(report.moved)} stored file(s) moved aside to units/stale/{why}", flush=True)
+
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(units), initial=len(report.reused), unit="unit", desc="work units",
+               disable=not progress_enabled(progress), dynamic_ncols=True)
+
+    def on_done(unit: WorkUnit, result: dict | None, error: BaseException | None) -> None:
+        try:
+            if error is None:
+                try:
+                    record = dict(result) if isinstance(result, dict) else result
+                    arrays = record.pop(ARRAYS_KEY, None) if isinstance(record, dict) else None
+                    validate_unit_result(record, unit, source=f"executor result for {unit.unit_id}")
+                    record["spec"] = unit.spec
+                    record = with_checksum(record)
+                    if arrays:  # the fitted motion, for the report: written before the JSON that marks the unit done
+                        write_arrays(arrays_path(out_dir, unit.unit_id), arrays)
+                    atomic_write_json(unit_path(out_dir, unit.unit_id), record)
+                except (ValueError, TypeError, OSError) as exc:
+                    error = exc
+            if error is not None:
+                report.failed[unit.unit_id] = f"{type(error).__name__}: {error}"
+                log.error("unit %s failed: %s: %s", unit.unit_id, type(error).__name__, error, exc_info=error)
+            else:
+                done[unit.unit_id] = record
+                report.ran.append(unit.unit_id)
+        finally:
+            bar.update(1)
+
+    try:
+        run_backend(todo, execute, on_done)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: what finished is stored; say so, and how to go on
+        from benchmark.core.interrupts import add_stop_note
+
+        add_stop_note(exc, f"{len(report.reused) + len(report.ran)} of {len(units)} work unit(s) stored in "
+                           f"{Path(out_dir) / 'units'}; the same command resumes from them")
+        raise
+    finally:
+        bar.close()
+    report.results = {uid: done[uid] for uid in ids if uid in done}
+    report.wall_s = time.perf_counter() - t0
+    if report.failed:
+        log.error("%d of %d unit(s) failed: %s", len(report.failed), len(units), ", ".join(report.failed))
+    return report

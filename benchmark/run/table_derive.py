@@ -1,0 +1,204 @@
+"""Derivation: unit results -> the public table (:func:`derive_table`).
+
+The table is derived from the per-sequence rows of the stored unit results, never accumulated by
+hand; see :mod:`benchmark.core.work_units` for the unit-result dict and the unit conventions.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import logging
+import math
+import statistics
+from typing import Any, Iterable, Mapping
+
+from benchmark.core.fit_diagnostics import cell_diagnostics
+from benchmark.core.json_io import canonical_json
+from benchmark.core.work_units import (TABLE_FORMAT_VERSION, WorkUnit, spec_field, grid_cells, metric_specs,
+                                       profile_sizes, si_metric, spec_source, table_rules, validate_unit_result)
+
+log = logging.getLogger("benchmark.results")  # the name it had before the split
+
+STD_DEFINITION = "population standard deviation (ddof=0) over sequences of the per-sequence means"
+
+
+_META_KEYS = {"units", "profile", "seed", "device", "priors", "provenance", "data", "body", "sequences", "wall_s",
+              "resume"}
+_META_NEEDS = {
+    "units": "the planned WorkUnit list from plan_units (it says how many units each cell needs)",
+    "profile": "the profile dict with its name (catalog.get_profile)",
+    "seed": "the table run's seed",
+    "device": "the device the run used",
+}
+
+
+def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Mapping) -> dict:
+    """The public table JSON, derived from per-sequence unit results.
+
+    table_spec: the table spec the units were planned from.
+    unit_results: unit-result dicts (from ``run_units`` or :func:`load_unit_results`); results of
+        units not in the plan are ignored; a result whose spec hash differs from its planned unit
+        is an error.
+    meta: ``units`` (the planned :class:`WorkUnit` list, required: it says how many units each cell
+        needs), ``profile`` (the profile dict with its name), ``seed``, ``device`` (all required);
+        optional ``priors`` (row order, a list or a dict keyed by name; default: order of first
+        appearance in ``units``), ``provenance`` (default:
+        :func:`benchmark.core.provenance.collect_provenance`), ``data`` (what the test data was, e.g.
+        ``"synthetic:test"``), ``body`` (the body model's name), ``sequences`` (the sequence ids
+        run), ``wall_s`` (the run's wall time), ``resume`` (what the runner did with stored unit
+        files: counts of reused / recomputed / moved aside; kept in ``provenance["resume"]``). The table also records each prior's identity as
+        planned (``prior_info``: name, size, weights hash...).
+
+    Each cell holds its grid coordinates, then per metric (unit in the name): the mean over all
+    output frames of all sequences (``total sum / total frames``, in reported units) and
+    ``<metric>_std`` (:data:`STD_DEFINITION`), plus ``sequences``, ``frames``, ``units``,
+    ``fingerprint`` (sha256 of the sorted unit fingerprints). A cell missing any unit has
+    ``na_reason: "incomplete: k of n units"`` and no metrics; a cell whose units report n/a has
+    their reason. A metric that some sequences lack is ``null`` with its reason in ``metric_na``.
+    """
+    unknown = set(meta) - _META_KEYS
+    if unknown:
+        raise ValueError(f"derive_table: unknown meta key(s) {sorted(unknown)}; known: {sorted(_META_KEYS)}")
+    for key, what in _META_NEEDS.items():
+        if key not in meta:
+            raise ValueError(f"derive_table: meta needs {key!r}: {what}")
+    units: list[WorkUnit] = list(meta["units"])
+    profile = meta["profile"]
+    if not isinstance(profile, Mapping) or "name" not in profile:
+        raise ValueError("derive_table: meta['profile'] must be the profile dict with its 'name' (catalog.get_profile)")
+    metrics = metric_specs(table_spec)
+    cells = grid_cells(table_spec)
+    grid_keys = list(spec_field(table_spec, "grid"))
+    clash = [m["name"] for m in metrics if m["name"] in grid_keys]
+    if clash:
+        raise ValueError(f"{spec_source(table_spec)}: metric name(s) {clash} collide with grid axes")
+
+    planned = {u.unit_id: u for u in units}
+    results: dict[str, Mapping] = {}
+    for r in unit_results:
+        uid = r.get("unit_id") if isinstance(r, Mapping) else None
+        unit = planned.get(uid)
+        if unit is None:
+            log.debug("derive_table: ignoring result %r (not in this plan)", uid)
+            continue
+        if r.get("spec_hash") != unit.spec_hash:
+            raise ValueError(f"derive_table: result for {uid} has spec_hash {r.get('spec_hash')!r}, the plan says "
+                             f"{unit.spec_hash!r}: it was computed under other rules; rerun it")
+        results[uid] = validate_unit_result(r, unit, source=f"result {uid}")
+
+    priors = list(meta.get("priors") or dict.fromkeys(u.prior for u in units))
+    groups: dict[tuple[str, str], list[WorkUnit]] = {}
+    for u in units:
+        groups.setdefault((u.prior, u.cell_key), []).append(u)
+
+    rows = []
+    for prior in priors:
+        row_cells = []
+        for cell in cells:
+            group = groups.get((prior, canonical_json(cell)), [])
+            done = [results[u.unit_id] for u in group if u.unit_id in results]
+            row_cells.append(_derive_cell(cell, len(group), done, metrics))
+        rows.append({"prior": prior, "cells": row_cells})
+
+    if "provenance" in meta and meta["provenance"] is not None:
+        provenance = dict(meta["provenance"])
+    else:
+        from benchmark.core.provenance import collect_provenance
+
+        provenance = collect_provenance(device=meta["device"])
+    done_results = list(results.values())
+    provenance["timings"] = {
+        "fit_s": math.fsum(r["timings"]["fit_s"] for r in done_results),
+        "eval_s": math.fsum(r["timings"]["eval_s"] for r in done_results),
+        "units": len(done_results),
+    }
+    if meta.get("wall_s") is not None:
+        provenance["timings"]["wall_s"] = float(meta["wall_s"])
+    if meta.get("resume") is not None:
+        provenance["resume"] = dict(meta["resume"])
+
+    all_cells = [c for row in rows for c in row["cells"]]
+    table = {
+        "format_version": TABLE_FORMAT_VERSION,
+        "table": table_spec["name"],
+        "title": table_spec.get("title", table_spec["name"]),
+        "protocol": table_spec.get("protocol"),
+        "protocol_version": table_spec["protocol_version"],
+        "profile": profile["name"],
+        "profile_sizes": profile_sizes(profile),
+        "profile_description": profile.get("description", ""),
+        "comparable_to_full": profile["name"] == "full",
+        "seed": meta["seed"],
+        "device": meta["device"],
+        "unit_devices": sorted({r["device"] for r in done_results}),
+        "data": meta.get("data"),
+        "body": meta.get("body"),
+        "sequences": list(meta["sequences"]) if meta.get("sequences") is not None else None,
+        "prior_info": {p: next((u.spec["prior"] for u in units if u.prior == p), None) for p in priors},
+        "provenance": provenance,
+        "spec": table_rules(table_spec),
+        "grid": {k: list(v) for k, v in table_spec["grid"].items()},
+        "metrics": metrics,
+        "headline_metric": table_spec.get("headline_metric", metrics[0]["name"]),
+        "std_definition": STD_DEFINITION,
+        "counts": {
+            "units_planned": len(units),
+            "units_done": len(done_results),
+            "cells": len(all_cells),
+            "cells_na": sum(1 for c in all_cells if c.get("na_reason")),
+        },
+        "rows": rows,
+    }
+    if table_spec.get("paper"):
+        table["paper"] = copy.deepcopy(table_spec["paper"])
+    return table
+
+
+def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list[dict]) -> dict:
+    out: dict[str, Any] = dict(cell)
+    out["units"] = n_units
+    if n_units == 0:
+        out["na_reason"] = "not run: no work units were planned for this cell"
+        return out
+    if len(done) < n_units:
+        out["na_reason"] = f"incomplete: {len(done)} of {n_units} units"
+        return out
+    out["fingerprint"] = hashlib.sha256(canonical_json(sorted(r["fingerprint"] for r in done)).encode()).hexdigest()
+    reasons = list(dict.fromkeys(r["na_reason"] for r in done if r["na_reason"] is not None))
+    if reasons:
+        out["na_reason"] = "; ".join(reasons)
+        return out
+    seqs = [row for r in done for row in r["per_sequence"]]
+    ids = [row["id"] for row in seqs]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"cell {dict(cell)}: a sequence appears in two units: {sorted({i for i in ids if ids.count(i) > 1})[:5]}")
+    frames = [row["frames"] for row in seqs]
+    metric_na = {}
+    for m in metrics:
+        name = m["name"]
+        key, factor = si_metric(name)
+        have = [row for row in seqs if key in row["sums"]]
+        if len(have) < len(seqs):
+            out[name] = None
+            out[f"{name}_std"] = None
+            given = list(dict.fromkeys(row["na"][key] for row in seqs
+                                       if key not in row["sums"] and key in (row.get("na") or {})))
+            metric_na[name] = ("; ".join(given) if given and not have
+                               else f"not reported: no sequence has {key!r}" if not have
+                               else f"incomplete: reported for {len(have)} of {len(seqs)} sequences")
+            continue
+        total = math.fsum(row["sums"][key] for row in seqs)
+        out[name] = factor * total / sum(frames)
+        per_seq = [factor * row["sums"][key] / row["frames"] for row in seqs]
+        out[f"{name}_std"] = statistics.pstdev(per_seq) if len(per_seq) > 1 else 0.0
+    out["sequences"] = len(seqs)
+    out["frames"] = sum(frames)
+    diagnostics = cell_diagnostics(seqs)
+    if diagnostics is not None:
+        out["diagnostics"] = diagnostics
+    out["fit_s"] = math.fsum(r["timings"]["fit_s"] for r in done)
+    out["eval_s"] = math.fsum(r["timings"]["eval_s"] for r in done)
+    if metric_na:
+        out["metric_na"] = metric_na
+    return out

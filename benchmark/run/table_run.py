@@ -1,0 +1,140 @@
+"""Running a table: data, units, execution (resumable), derivation, writing."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def _sha_file(path: str | None) -> str | None:
+    if not path or not Path(path).is_file():
+        return None
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def motion_sha256(motion) -> str:
+    """Content hash of a motion as a unit reads it: its arrays (dtype, shape and bytes of poses,
+    translation, timestamps, shape), its body name and its metadata. Two files holding different
+    motions under one name hash differently; the same motion hashes the same wherever it lies."""
+    import json
+
+    import numpy as np
+
+    if hasattr(motion, "content_sha256"):  # a capture (benchmark.loaders.scans.ScanSequence)
+        return motion.content_sha256()
+    h = hashlib.sha256()
+    for name in ("poses", "trans", "timestamps", "shape"):
+        value = getattr(motion, name, None)
+        if value is None:
+            h.update(f"{name}:none;".encode())
+            continue
+        arr = np.ascontiguousarray(value.detach().cpu().numpy() if hasattr(value, "detach") else np.asarray(value))
+        h.update(f"{name}:{arr.dtype.str}:{arr.shape};".encode())
+        h.update(arr.tobytes())
+    h.update(f"body:{motion.body};".encode())
+    h.update(json.dumps(motion.meta or {}, sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
+def table_protocol(spec):
+    """The protocol instance of a table spec: its ``protocol`` field looked up in the protocol
+    registry (:mod:`benchmark.protocols.registry`, entry-point group ``benchmark.protocols``); the
+    interface is :class:`benchmark.protocols.base.Protocol`."""
+    from benchmark.protocols.registry import make_protocol
+
+    name = spec.get("protocol")
+    try:
+        return make_protocol(name)
+    except KeyError as exc:
+        raise ValueError(f"{spec.get('_source', spec.get('name'))}: field 'protocol' is {name!r}: {exc.args[0]}") from None
+
+
+class TableExecutor:
+    """``execute(unit) -> unit result`` for one table run: the protocol
+    (:class:`benchmark.protocols.base.Protocol`), the built adapters (their weights), the body, and
+    the data source with the test motions.
+
+    It holds no closures and no open resources, so a backend can pickle it once and ship it to
+    worker processes or Ray workers (:mod:`benchmark.run.backends`): the weights and the test split
+    travel once per worker, never per unit (the protocol instance travels by reference to its
+    class). ``unit_cost`` lets a parallel backend order units longest-first.
+    """
+
+    def __init__(self, protocol, spec: dict, profile: dict, adapters: dict, body, source, device):
+        self.protocol = protocol
+        self.spec = spec
+        self.profile = profile
+        self.adapters = adapters
+        self.body = body
+        self.source = source
+        self.device = device
+
+    def __call__(self, unit) -> dict:
+        adapter = self.adapters[unit.prior]
+        reason = self.protocol.na_reason(self.spec, adapter)
+        if reason:
+            from benchmark.core.work_units import na_result
+
+            return na_result(unit, reason)
+        return self.protocol.run_unit(unit, self.spec, self.profile, adapter, self.body, self.source, self.device)
+
+    def unit_cost(self, unit) -> float:
+        """Relative cost of a unit (for longest-first ordering): the protocol's ``unit_cost``
+        (default :func:`benchmark.core.work_units.estimate_cost`)."""
+        return float(self.protocol.unit_cost(unit, self.spec, self.profile))
+
+
+def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="only-missing", size="embedded",
+              weights=None, data=None, backend="local", backend_options: dict | None = None) -> dict:
+    """Run a table and write it. ``backend``: ``"local"`` or ``"ray"`` (or a backend callable, see
+    :mod:`benchmark.run.runner`); ``backend_options``: its options (local: ``jobs``; ray: ``address``,
+    ``cpus_per_unit``, ``gpus_per_unit``), see :func:`benchmark.run.backends.make_backend`. The backend
+    never changes a number."""
+    from benchmark.run.backends import make_backend
+    from benchmark.run.registry import make_adapter, weights_content_sha256
+    from benchmark.run.runner import run_units
+    from benchmark.run.table_derive import derive_table
+    from benchmark.core.work_units import plan_units, select_sequences
+    from benchmark.run.writers import format_markdown, write_table
+
+    protocol = table_protocol(spec)
+    weights = weights or {}
+    unknown = set(weights) - set(priors)
+    if unknown:
+        raise ValueError(f"--weights given for priors not being run: {sorted(unknown)}")
+    # build the backend first: a bad option fails before any data is loaded
+    run_backend = backend if callable(backend) else make_backend(backend, device=str(device), **(backend_options or {}))
+    motions = protocol.load_motions(spec, data, body)
+    ids = select_sequences(motions, profile["sequences"])
+    n_cells = 1
+    for values in spec["grid"].values():
+        n_cells *= len(values)
+    print(f"{len(ids)} sequences, {len(priors)} priors, {n_cells} cells, {profile['steps']} steps per fit")
+
+    # build every adapter before planning, so the spec hash covers the embedded weights' hashes
+    adapters = {}
+    prior_info = {}
+    for name in priors:
+        w = weights.get(name)
+        adapters[name] = make_adapter(name, size=size, weights=w, device=device)
+        # the content of every weights file the adapter read (embedded or given): new weights under
+        # the same file name invalidate stored results
+        prior_info[name] = {"size": size, "weights": w, "weights_sha256": _sha_file(w),
+                            "embedded_sha256": weights_content_sha256(adapters[name])}
+
+    # the content of the motion data each sequence id stands for enters its units' spec hash
+    data_hashes = {sid: motion_sha256(motions[sid]) for sid in ids}
+    units = plan_units(spec, profile, priors, ids, seed, device, prior_info, data_hashes=data_hashes)
+    source = protocol.make_source(spec, body, motions, seed)
+    execute = TableExecutor(protocol, spec, profile, adapters, body, source, device)
+
+    report = run_units(units, execute, out_dir, resume=resume, backend=run_backend)
+    results, failures = report
+    meta = {"units": units, "profile": profile, "seed": seed, "device": str(device), "priors": prior_info,
+            "sequences": ids, "data": data or "synthetic:test", "body": body.name, "resume": report.resume_counts()}
+    table = derive_table(spec, results, meta)
+    files = write_table(table, out_dir)
+    return {"table": table, "markdown": format_markdown(table), "files": files, "failures": failures}

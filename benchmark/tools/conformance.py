@@ -1,0 +1,212 @@
+"""The conformance kit: ``python -m benchmark check-prior NAME``.
+
+Runs an adapter through a tiny completion table (one short sequence of smooth motion, two cells,
+a few optimiser steps) and reports pass/fail per check: the adapter's declaration, latent shapes,
+decode shapes, finite losses, gradients reaching the latents, determinism under a seed, and
+decoding at arbitrary timestamps where the adapter claims it (continuous priors).
+"""
+
+from __future__ import annotations
+
+import math
+import logging
+
+import roma
+import torch
+
+from benchmark.data.observations import PointCloudSequence
+from benchmark.core.skeleton import NUM_JOINTS
+from benchmark.core.surface_sampling import sample_surface
+
+log = logging.getLogger(__name__)
+
+CELLS = ({"points": 100, "fps": 5}, {"points": 1000, "fps": 10})
+
+
+def toy_observation(body, duration: float = 2.0, capture_fps: float = 10.0, points: int = 1000, seed: int = 0):
+    """One sequence of smooth synthetic motion (small sinusoidal joint rotations, slow walk forward)."""
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(int(round(duration * capture_fps)), dtype=torch.float64) / capture_fps
+    amp = torch.rand(NUM_JOINTS, 3, generator=g) * 0.3
+    phase = torch.rand(NUM_JOINTS, 3, generator=g) * 2 * math.pi
+    aa = amp * torch.sin(2 * math.pi * 1.0 * t[:, None, None].float() + phase)
+    rot = roma.rotvec_to_rotmat(aa)[None]  # (1, T, 22, 3, 3)
+    trans = torch.zeros(1, len(t), 3)
+    trans[0, :, 2] = 0.8 * t.float()
+    with torch.no_grad():
+        out = body(rot, trans)
+        pts = sample_surface(out.vertices, body.faces, points, g)
+    T = len(t)
+    return PointCloudSequence(points=pts, lengths=torch.full((1, T), points, dtype=torch.long),
+                              timestamps=t[None].clone(), frame_mask=torch.ones(1, T, dtype=torch.bool))
+
+
+class _Report:
+    def __init__(self):
+        self.rows = []
+
+    def check(self, name, fn):
+        try:
+            detail = fn()
+            self.rows.append((name, True, detail or ""))
+            return True
+        except Exception as exc:  # a failing check is a row, not a crash
+            self.rows.append((name, False, f"{type(exc).__name__}: {exc}"))
+            log.debug("check %s failed", name, exc_info=True)
+            return False
+
+    def print(self):
+        width = max(len(r[0]) for r in self.rows)
+        for name, ok, detail in self.rows:
+            print(f"  [{'PASS' if ok else 'FAIL'}] {name.ljust(width)}  {detail}")
+
+    @property
+    def ok(self):
+        return all(r[1] for r in self.rows)
+
+
+def check_prior(name: str, size: str = "embedded", weights: str | None = None, steps: int = 5, verbose: bool = True) -> bool:
+    from benchmark.body import get_body
+    from benchmark.run.registry import make_adapter
+    from benchmark.data.degrade import degrade
+    from benchmark.protocols.completion import fit, observation_batch
+    from benchmark.protocols.fit_state import body_parameters, init_state
+    from priors.base import MotionEncoder, PriorAdapter, interfaces_of
+
+    rep = _Report()
+    ctx = {}
+
+    def load():
+        ctx["adapter"] = make_adapter(name, size=size, weights=weights)
+        a = ctx["adapter"]
+        if not isinstance(a, PriorAdapter):
+            raise TypeError(f"{type(a).__name__} does not subclass priors.base.PriorAdapter")
+        return f"{type(a).__name__}, window {a.window.kind}, {a.parameter_count():,} parameters"
+
+    if not rep.check("instantiate", load):
+        rep.print()
+        return False
+    a = ctx["adapter"]
+    body = get_body("anny")
+    scans = toy_observation(body)
+    window_s = 2.0
+    out_t = (torch.arange(60, dtype=torch.float64) / 30.0)[None]
+
+    def declaration():
+        if a.window.kind not in ("per-frame", "fixed", "continuous"):
+            raise ValueError(f"window.kind {a.window.kind!r}")
+        if a.window.kind == "fixed" and not (a.window.frames and a.window.fps):
+            raise ValueError("fixed windows need frames and fps")
+        if not a.name or a.name == "prior":
+            raise ValueError("set a registry name")
+        if a.has_encoder and not isinstance(a, MotionEncoder):
+            raise ValueError("has_encoder is True but the adapter is not a priors.base.MotionEncoder (encode_motion)")
+        return (f"translation={a.encodes_translation} root={a.encodes_root_orientation} heading_normalised={a.heading_normalised}"
+                f" interfaces: {', '.join(interfaces_of(a)) or 'none'}")
+
+    rep.check("declaration", declaration)
+
+    for cell in CELLS:
+        obs = degrade(scans, cell["points"], cell["fps"], seed=1)
+        batch = observation_batch(obs, window_s, out_t, "cpu")
+        label = f"{cell['points']} pts / {cell['fps']} fps"
+
+        def latents():
+            lat = a.init_latents(batch, torch.Generator().manual_seed(0))
+            for k, v in lat.items():
+                if v.shape[0] != batch.batch_size:
+                    raise ValueError(f"latent {k!r} has batch {v.shape[0]}, expected {batch.batch_size}")
+                if not torch.isfinite(v).all():
+                    raise ValueError(f"latent {k!r} is not finite")
+            return ", ".join(f"{k} {tuple(v.shape)}" for k, v in lat.items())
+
+        rep.check(f"{label}: init_latents shapes", latents)
+
+        def decode_shapes():
+            st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu")
+            rot, tr = body_parameters(st, batch.output_timestamps)
+            if rot.shape != (1, out_t.shape[1], 22, 3, 3) or tr.shape != (1, out_t.shape[1], 3):
+                raise ValueError(f"rotations {tuple(rot.shape)}, translation {tuple(tr.shape)}")
+            orth = (rot.transpose(-1, -2) @ rot - torch.eye(3)).abs().max()
+            if orth > 1e-4:
+                raise ValueError(f"rotations not orthonormal (max error {orth:.2e})")
+            return f"rotations {tuple(rot.shape)}"
+
+        rep.check(f"{label}: decode at output timestamps", decode_shapes)
+
+        def gradients():
+            st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu")
+            rot, tr = body_parameters(st, batch.timestamps, observed=True)
+            verts = body.skin(body.prepare(st.shape()), rot, tr).vertices
+            from benchmark.metrics.chamfer import chamfer_loss
+
+            # the data term alone: a prior term reaches the latents even when the decoder ignores them
+            data = chamfer_loss(verts.flatten(0, 1), batch.points.flatten(0, 1), b_lengths=batch.lengths.flatten()).sum()
+            data.backward()
+            constant = set(a.constant_latents)  # e.g. the window length a decoder reads
+            dead = [k for k, v in st.latents.items() if k not in constant
+                    and (v.grad is None or not torch.isfinite(v.grad).all() or v.grad.abs().sum() == 0)]
+            if dead:
+                raise ValueError(f"the decoded motion does not depend on latents {dead}: no finite non-zero gradient "
+                                 "of the data term reaches them (does decode() read them, without detaching?)")
+            prior = a.prior_term(st.latents).sum()
+            if not torch.isfinite(prior):
+                raise ValueError(f"prior term is {prior.item()}")
+            return "the data term's gradient reaches every latent"
+
+        rep.check(f"{label}: gradients reach the latents", gradients)
+
+        def decode_depends_on_latents():
+            st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu")
+            constant = set(a.constant_latents)
+            with torch.no_grad():
+                rot0, tr0 = body_parameters(st, batch.output_timestamps)
+                g = torch.Generator().manual_seed(1)
+                for k, v in st.latents.items():
+                    if k in constant:
+                        continue
+                    saved = v.detach().clone()
+                    v.add_(0.1 * torch.randn(v.shape, generator=g, dtype=v.dtype).to(v.device))
+                    rot1, tr1 = body_parameters(st, batch.output_timestamps)
+                    v.copy_(saved)
+                    moved = max((rot1 - rot0).abs().max().item(), (tr1 - tr0).abs().max().item())
+                    if not moved > 1e-6:
+                        raise ValueError(f"moving latent {k!r} by 0.1 (per element) leaves the decoded motion unchanged "
+                                         f"(largest change {moved:.1e}): decode() must depend on it")
+            return "moving any latent moves the decoded motion"
+
+        rep.check(f"{label}: decoded motion depends on the latents", decode_depends_on_latents)
+
+        def finite_and_deterministic():
+            runs = []
+            for _ in range(2):
+                st, info = fit(a, body, batch, steps=steps, lr=0.03, lambda_prior=0.01, loss_vertices=1500,
+                               generator=torch.Generator().manual_seed(0), device="cpu")
+                for h in info["history"]:
+                    if not math.isfinite(h["data_mm"]) or not math.isfinite(h["prior"]):
+                        raise ValueError(f"non-finite loss {h}")
+                rot, _ = body_parameters(st, batch.output_timestamps)
+                runs.append((rot.detach(), info["history"][-1]["data_mm"]))
+            diff = (runs[0][0] - runs[1][0]).abs().max().item()
+            if diff > 1e-5:
+                raise ValueError(f"two fits under the same seed differ by {diff:.2e}")
+            return f"{steps} steps, final data term {runs[0][1]:.1f} mm, repeat identical"
+
+        rep.check(f"{label}: finite losses, determinism under a seed", finite_and_deterministic)
+
+    if a.window.kind == "continuous":
+        def arbitrary():
+            st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu")
+            ts = torch.tensor([[0.0, 0.0137, 0.5, 1.234, 1.999]], dtype=torch.float64)
+            rot, _ = body_parameters(st, ts)
+            if rot.shape[1] != 5:
+                raise ValueError(f"asked 5 timestamps, got {rot.shape[1]}")
+            return "decodes at 5 irregular timestamps"
+
+        rep.check("decode at arbitrary timestamps", arbitrary)
+
+    if verbose:
+        print(f"check-prior {name} ({size}):")
+        rep.print()
+        print("PASS" if rep.ok else "FAIL")
+    return rep.ok
