@@ -186,12 +186,13 @@ def test_the_projects_protocols_are_registered_by_entry_point_and_built_in():
 
 def test_stale_package_metadata_falls_back_to_the_built_in_protocols(monkeypatch):
     """A checkout installed before the group existed (no entry points) still runs its tables."""
+    from benchmark.core import plugins
     from benchmark.protocols import registry
 
-    monkeypatch.setattr(registry, "entry_points", lambda group: [])
-    monkeypatch.setattr(registry, "_REGISTRY", None)
+    monkeypatch.setattr(plugins, "entry_points", lambda group: [])
+    monkeypatch.setattr(registry.PROTOCOLS, "entries", None)  # discovered again, restored afterwards
     assert registry.protocol_names() == sorted(registry.BUILTIN)
-    assert {e.origin for e in registry.registry().values()} == {registry.BUILTIN_ORIGIN}
+    assert {e.origin for e in registry.registry().values()} == {plugins.BUILTIN_ORIGIN}
     assert type(registry.make_protocol("sls")).__name__ == "SlsProtocol"
 
 

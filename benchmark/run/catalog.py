@@ -9,13 +9,13 @@ registered at run time (:func:`register_table`). A spec's ``protocol`` field nam
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
-from importlib.metadata import entry_points
 from pathlib import Path
 
 import yaml
+
+from benchmark.core.plugins import BUILTIN_ORIGIN, PluginEntry, PluginRegistry
 
 DATASETS = {
     "synthetic:test": "embedded, procedural: 4 subjects (2 male, 2 female), 170 sequences >= 4 s at 50 fps (datasets/synthetic.md)",
@@ -29,17 +29,14 @@ DATASETS = {
 
 
 TABLES_GROUP = "benchmark.tables"  # entry points: table name -> "package:spec.yaml" (docs/adding-a-table.md)
-BUILTIN_ORIGIN = "built-in"
 
 
-@dataclass
-class TableEntry:
+class TableEntry(PluginEntry):
     """Where a table spec lives: a YAML file in a package (``"package:file.yaml"``, read through
-    importlib.resources) or a path (``"/path/to/file.yaml"``)."""
+    importlib.resources) or a path (``"/path/to/file.yaml"``). ``origin``: "built-in"
+    (benchmark/tables/), the distribution that registered it, or "runtime"."""
 
-    name: str
-    target: str
-    origin: str  # "built-in" (benchmark/tables/), the distribution that registered it, or "runtime"
+    kind = "table"
 
     def read_text(self) -> str:
         if _RESOURCE.fullmatch(self.target) and not Path(self.target).is_file():
@@ -49,57 +46,38 @@ class TableEntry:
 
 
 _RESOURCE = re.compile(r"[A-Za-z_][\w.]*:[\w.\-/]+")
-_TABLES: dict[str, TableEntry] | None = None
 
 
-def _discover_tables() -> dict[str, TableEntry]:
-    """The project's own specs (``benchmark/tables/*.yaml``), then the entry-point group
+def _builtin_tables() -> dict[str, str]:
+    """The project's own specs (``benchmark/tables/*.yaml``), seeded before the entry-point group
     ``benchmark.tables`` (specs of other packages)."""
-    found = {p.name[:-5]: TableEntry(p.name[:-5], f"benchmark.tables:{p.name}", BUILTIN_ORIGIN)
-             for p in resources.files("benchmark.tables").iterdir() if p.name.endswith(".yaml")}
-    for ep in entry_points(group=TABLES_GROUP):
-        dist = getattr(ep, "dist", None)
-        origin = f"{dist.name} {dist.version}" if dist is not None else "unknown"
-        if ep.name in found and found[ep.name].target != ep.value:
-            raise ValueError(f"table name collision: {ep.name!r} is registered by {found[ep.name].origin} "
-                             f"({found[ep.name].target}) and by {origin} ({ep.value}); uninstall one of them")
-        found[ep.name] = TableEntry(ep.name, ep.value, origin)
-    return found
+    return {p.name[:-5]: f"benchmark.tables:{p.name}"
+            for p in resources.files("benchmark.tables").iterdir() if p.name.endswith(".yaml")}
 
 
-def table_registry() -> dict[str, TableEntry]:
-    global _TABLES
-    if _TABLES is None:
-        _TABLES = _discover_tables()
-    return _TABLES
+TABLES = PluginRegistry(TableEntry, TABLES_GROUP, builtin=_builtin_tables)
+
+
+table_registry = TABLES.all  # name -> TableEntry
+table_names = TABLES.names
 
 
 def register_table(name: str, target, origin: str = "runtime") -> None:
     """Register a table spec at run time (tests, notebooks): ``target`` is the spec's path or
     ``"package:file.yaml"``. Its ``protocol`` must be registered too
     (:func:`benchmark.protocols.registry.register`)."""
-    reg = table_registry()
-    if name in reg:
-        raise ValueError(f"table {name!r} is already registered by {reg[name].origin} ({reg[name].target})")
-    reg[name] = TableEntry(name, str(target), origin)
+    TABLES.register(name, str(target), origin)
     load_table_spec.cache_clear()
 
 
 def unregister_table(name: str) -> None:
-    table_registry().pop(name, None)
+    TABLES.unregister(name)
     load_table_spec.cache_clear()
 
 
 @lru_cache(maxsize=None)
 def load_table_spec(name: str) -> dict:
-    names = table_names()
-    if name not in names:
-        import difflib
-
-        close = difflib.get_close_matches(name, names, n=1)
-        hint = f" Did you mean {close[0]!r}?" if close else ""
-        raise KeyError(f"unknown table {name!r}.{hint} Known: {', '.join(names)}")
-    entry = table_registry()[name]
+    entry = TABLES.lookup(name, matches=1, listed="Known")
     spec = yaml.safe_load(entry.read_text())
     if entry.origin == BUILTIN_ORIGIN:
         return spec
@@ -109,10 +87,6 @@ def load_table_spec(name: str) -> dict:
         raise ValueError(f"{where}: the spec's 'name' field must be {name!r}, got {got!r}")
     spec["_source"] = entry.target  # for error messages; keys starting with "_" are not rules
     return spec
-
-
-def table_names() -> list[str]:
-    return sorted(table_registry())
 
 
 @lru_cache(maxsize=None)
@@ -148,33 +122,30 @@ def table_rows():
     return rows
 
 
+def _plugin_rows(entries, describe) -> list[tuple[str, str]]:
+    """A row per registered plug-in: ``describe(obj)`` and where it comes from, or its load error."""
+    rows = []
+    for name, entry in sorted(entries.items()):
+        obj = entry.load()
+        if obj is None:
+            rows.append((name, f"LOAD ERROR ({entry.origin}, {entry.target}): {entry.error}"))
+        else:
+            rows.append((name, f"{describe(obj)}  [{entry.origin}: {entry.target}]"))
+    return rows
+
+
 def prior_rows():
     from benchmark.run.registry import registry
     from priors.base import PriorAdapter
 
-    rows = []
-    for name, entry in sorted(registry().items()):
-        cls = entry.load()
-        if cls is None:
-            rows.append((name, f"LOAD ERROR ({entry.origin}, {entry.target}): {entry.error}"))
-        else:
-            paper = cls.paper if isinstance(cls, type) and issubclass(cls, PriorAdapter) else "(not a priors.base.PriorAdapter)"
-            rows.append((name, f"{paper}  [{entry.origin}: {entry.target}]"))
-    return rows
+    return _plugin_rows(registry(), lambda cls: cls.paper if isinstance(cls, type) and issubclass(cls, PriorAdapter)
+                        else "(not a priors.base.PriorAdapter)")
 
 
 def protocol_rows():
     from benchmark.protocols.registry import registry
 
-    rows = []
-    for name, entry in sorted(registry().items()):
-        cls = entry.load()
-        if cls is None:
-            rows.append((name, f"LOAD ERROR ({entry.origin}, {entry.target}): {entry.error}"))
-        else:
-            doc = ((getattr(cls, "__doc__", None) or "").strip().splitlines() or [""])[0]
-            rows.append((name, f"{doc}  [{entry.origin}: {entry.target}]"))
-    return rows
+    return _plugin_rows(registry(), lambda cls: ((getattr(cls, "__doc__", None) or "").strip().splitlines() or [""])[0])
 
 
 def dataset_rows():
