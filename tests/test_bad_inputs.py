@@ -1135,7 +1135,7 @@ if __name__ == "__main__":  # print the table of tests/README.md: python tests/t
             finally:
                 os.chdir(cwd)
                 mp.undo()
-        text = message.replace(d, "TMP").splitlines()
+        text = message.replace(d, "TMP").replace(str(ROOT), "ROOT").splitlines()
         if text and text[0].startswith("usage:"):  # argparse: usage lines, then the error line
             text = text[-1:]
         shown = text[0] if len(text) == 1 else text[0] + " ... (" + str(len(text) - 1) + " more lines: paths tried)"
