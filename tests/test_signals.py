@@ -42,6 +42,13 @@ _DRIVER = textwrap.dedent("""
     sys.path[:0] = [{root!r}, {tests!r}]
 
     if __name__ == "__main__":
+        import signal
+
+        # Ctrl-C as a process started from a terminal gets it: a test run started in the background
+        # of a non-interactive shell (`.ci/run &`) hands SIGINT down ignored, and Python keeps that
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {{signal.SIGINT}})
+
         import pytest
         from tiny_run import tiny_table1
         from benchmark.cli import main
