@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+import walkthrough
 from tiny_run import tiny_table1, write_motion
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,26 +30,15 @@ FILES = {"pyproject.toml", "tiny_pose/__init__.py", "tiny_pose/model.py", "tiny_
 
 
 def doc_files() -> dict[str, str]:
-    """{path: text} of the doc's fenced blocks that start with ``# file: PATH``."""
-    files = {}
-    for body in re.findall(r"^```[a-z]*\n(.*?)^```", DOC.read_text(), flags=re.S | re.M):
-        m = re.match(r"# file: (\S+)\n", body)
-        if m:
-            assert m.group(1) not in files, f"{m.group(1)} appears twice in {DOC.name}"
-            files[m.group(1)] = body[m.end():]
-    return files
+    return walkthrough.doc_files(DOC)
 
 
 def build_package(root: Path) -> Path:
-    for rel, text in doc_files().items():
-        (root / rel).parent.mkdir(parents=True, exist_ok=True)
-        (root / rel).write_text(text)
-    return root
+    return walkthrough.build_package(DOC, root)
 
 
 def forget_module():
-    for mod in [m for m in sys.modules if m == MODULE or m.startswith(MODULE + ".")]:
-        del sys.modules[mod]
+    walkthrough.forget_module(MODULE)
 
 
 def check_and_run_table1(tmp_path, monkeypatch, capsys):
