@@ -10,35 +10,15 @@ from pathlib import Path
 REPORT_ENTRIES = ("index.html", "img")
 
 
-def _is_table_file(path: Path) -> bool:
-    import json
-
-    from benchmark.report.run_folder import is_table
-
-    try:
-        return is_table(json.loads(path.read_text(encoding="utf-8")))
-    except (OSError, ValueError):
-        return False
-
-
 def check_report_args(run_dir, out) -> Path:
     """Before anything loads or renders: RUN_DIR is a run folder (a file, such as RUN/table1.json, is
     named as such, with the fix); --out (default RUN_DIR/report) is a writable folder, neither the
     run folder nor around it (a folder inside it is fine: the default), and holds nothing but an
     earlier report, which the report replaces. Returns the output folder."""
     from benchmark.core.outdir import OutDirError, check_not_overlapping, check_out_dir
+    from benchmark.report.run_folder import check_run_folder
 
-    root = Path(run_dir)
-    if root.is_file():
-        raise FileNotFoundError(f"report: {root} is a file, not a run folder; pass the folder that holds it "
-                                f"(python -m benchmark report {root.parent}), the --out of 'python -m benchmark run'")
-    if not root.is_dir():
-        raise FileNotFoundError(f"report: run folder {root} does not exist (give the --out folder of "
-                                "'python -m benchmark run TABLE', default runs/latest)")
-    if not any(_is_table_file(f) for f in root.glob("*.json") if not f.name.startswith(".")):
-        raise FileNotFoundError(f"report: {root} holds no table JSON (a <table>.json with fields table, rows, grid, "
-                                f"metrics, written by "
-                                f"'python -m benchmark run TABLE --out {root}'); is this the run folder?")
+    root = check_run_folder(run_dir)
     folder = Path(out) if out is not None else root / "report"
     check_not_overlapping(folder, [("run folder", root)], allow_inside=True)
     if folder.is_dir():

@@ -36,18 +36,41 @@ def is_table(obj) -> bool:
     return isinstance(obj, dict) and {"table", "rows", "grid", "metrics"} <= set(obj)
 
 
+def is_table_file(path: Path) -> bool:
+    """Whether ``path`` is a readable JSON file holding a table."""
+    try:
+        return is_table(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, ValueError):
+        return False
+
+
+def no_table_error(root: Path) -> FileNotFoundError:
+    return FileNotFoundError(
+        f"report: {root} holds no table JSON (a <table>.json with fields table, rows, grid, metrics, written by "
+        f"'python -m benchmark run TABLE --out {root}'); is this the run folder?")
+
+
+def check_run_folder(path) -> Path:
+    """``path`` as a run folder: an existing folder holding at least one table JSON. Raises
+    FileNotFoundError naming the path and the fix (a file such as RUN/table1.json is named as such)."""
+    root = Path(path)
+    if root.is_file():
+        raise FileNotFoundError(f"report: {root} is a file, not a run folder; pass the folder that holds it "
+                                f"(python -m benchmark report {root.parent}), the --out of 'python -m benchmark run'")
+    if not root.is_dir():
+        raise FileNotFoundError(f"report: run folder {root} does not exist (give the --out folder of "
+                                "'python -m benchmark run TABLE', default runs/latest)")
+    if not any(is_table_file(f) for f in root.glob("*.json") if not f.name.startswith(".")):
+        raise no_table_error(root)
+    return root
+
+
 def load_run(path) -> RunFolder:
     """Read ``path``: every ``<table>.json`` at its top level and every ``units/*.json``.
 
     Raises FileNotFoundError naming the folder and the fix when there is no table JSON.
     """
-    root = Path(path)
-    if root.is_file():
-        raise FileNotFoundError(f"report: {root} is a file, not a run folder; pass the folder that holds it "
-                                f"({root.parent}), the --out of 'python -m benchmark run'")
-    if not root.is_dir():
-        raise FileNotFoundError(f"report: run folder {root} does not exist (give the --out folder of "
-                                f"'python -m benchmark run TABLE', default runs/latest)")
+    root = check_run_folder(path)
     tables, skipped = [], []
     for f in sorted(root.glob("*.json")):
         try:
@@ -59,9 +82,7 @@ def load_run(path) -> RunFolder:
             obj["_file"] = f.name  # several tables (or profiles of one) may share a folder
             tables.append(obj)
     if not tables:
-        raise FileNotFoundError(
-            f"report: {root} holds no table JSON (a <table>.json with fields table, rows, grid, metrics, written by "
-            f"'python -m benchmark run TABLE --out {root}'); is this the run folder?")
+        raise no_table_error(root)
     units: dict = {}
     for f in sorted((root / "units").glob("*.json")):
         try:
