@@ -13,7 +13,6 @@ import importlib
 import json
 import math
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -125,16 +124,8 @@ def test_walkthrough_pip_installed(tmp_path):
     """``pip install -e .`` of the doc's package, then fresh interpreters as a user would run them:
     the entry point alone registers it (``list priors``, ``check-prior``, a shrunk ``run table1``)."""
     pkg = build_package(tmp_path / "tiny-pose-prior")
-    pip = [sys.executable, "-m", "pip"]
-    subprocess.run(pip + ["install", "--no-deps", "--no-build-isolation", "-e", str(pkg)], check=True,
-                   capture_output=True, text=True)
-
-    def cli(*args):
-        done = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True)
-        assert done.returncode == 0, done.stdout + done.stderr
-        return done.stdout
-
-    try:
+    cli = walkthrough.cli_in(ROOT)
+    with walkthrough.pip_installed(pkg, "tiny-pose-prior"):
         assert re.search(rf"^\s*{NAME}\b", cli("-m", "benchmark", "list", "priors"), flags=re.M)
         assert cli("-m", "benchmark", "check-prior", NAME).rstrip().endswith("PASS")
         data, out = tmp_path / "data", tmp_path / "out"
@@ -142,8 +133,6 @@ def test_walkthrough_pip_installed(tmp_path):
         rows = [r for r in json.loads((out / "table1.json").read_text())["rows"] if r["prior"] == NAME]
         numbers = [v for cell in rows[0]["cells"] for v in cell.values() if isinstance(v, float)]
         assert len(rows) == 1 and numbers and all(math.isfinite(v) for v in numbers)
-    finally:
-        subprocess.run(pip + ["uninstall", "-y", "tiny-pose-prior"], check=True, capture_output=True, text=True)
     assert NAME not in cli("-m", "benchmark", "list", "priors")
 
 def test_the_base_docstring_example_passes_check_prior(tmp_path, monkeypatch, capsys):

@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import math
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -133,16 +132,8 @@ def test_walkthrough_pip_installed(tmp_path):
     """``pip install -e .`` of the doc's package, then fresh interpreters as a user would run them:
     the entry points alone register it (``list tables``, ``list protocols``, ``run``)."""
     pkg = build_package(tmp_path / "mean-decode-table")
-    pip = [sys.executable, "-m", "pip"]
-    subprocess.run(pip + ["install", "--no-deps", "--no-build-isolation", "-e", str(pkg)], check=True,
-                   capture_output=True, text=True)
-
-    def cli(*args):
-        done = subprocess.run([sys.executable, *args], cwd=tmp_path, capture_output=True, text=True)
-        assert done.returncode == 0, done.stdout + done.stderr
-        return done.stdout
-
-    try:
+    cli = walkthrough.cli_in(tmp_path)
+    with walkthrough.pip_installed(pkg, "mean-decode-table"):
         assert re.search(rf"^\s*{NAME}\b.*\[mean-decode-table 0.1.0: {SPEC_TARGET}\]",
                          cli("-m", "benchmark", "list", "tables"), flags=re.M)
         assert re.search(rf"^\s*{NAME}\b.*\[mean-decode-table 0.1.0: {PROTOCOL_TARGET}\]",
@@ -150,8 +141,6 @@ def test_walkthrough_pip_installed(tmp_path):
         data, out = tmp_path / "data", tmp_path / "out"
         cli("-c", _RUN.format(root=str(ROOT), tests=str(ROOT / "tests"), data=str(data), out=str(out), name=NAME))
         check_table(out, ["no-prior"])
-    finally:
-        subprocess.run(pip + ["uninstall", "-y", "mean-decode-table"], check=True, capture_output=True, text=True)
     assert NAME not in cli("-m", "benchmark", "list", "tables")
 
 

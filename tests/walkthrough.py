@@ -4,7 +4,9 @@ describe: every fenced code block whose first line is ``# file: PATH`` is one fi
 from __future__ import annotations
 
 import re
+import subprocess
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -31,3 +33,27 @@ def forget_module(module: str) -> None:
     """Drop ``module`` and its submodules from ``sys.modules`` (the next import reads the files again)."""
     for mod in [m for m in sys.modules if m == module or m.startswith(module + ".")]:
         del sys.modules[mod]
+
+
+@contextmanager
+def pip_installed(package: Path, distribution: str):
+    """``pip install -e package`` (no dependencies, no build isolation) for the ``with`` block, then
+    ``pip uninstall distribution``, whatever the block's outcome."""
+    pip = [sys.executable, "-m", "pip"]
+    subprocess.run(pip + ["install", "--no-deps", "--no-build-isolation", "-e", str(package)], check=True,
+                   capture_output=True, text=True)
+    try:
+        yield
+    finally:
+        subprocess.run(pip + ["uninstall", "-y", distribution], check=True, capture_output=True, text=True)
+
+
+def cli_in(cwd: Path):
+    """A function running ``python ARGS...`` in a fresh interpreter in ``cwd``: it asserts exit 0 and
+    returns the standard output."""
+    def cli(*args) -> str:
+        done = subprocess.run([sys.executable, *args], cwd=cwd, capture_output=True, text=True)
+        assert done.returncode == 0, done.stdout + done.stderr
+        return done.stdout
+
+    return cli
