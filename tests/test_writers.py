@@ -45,7 +45,8 @@ def test_markdown_header_columns_arrows_and_footnotes(table):
                       "| 10000 pts / 5 fps | 10000 pts / 10 fps |")
     c = _cell(table, "vposer-slerp", 100, 5)
     first_row = next(l for l in lines if l.startswith("| vposer-slerp |"))
-    assert first_row.split(" | ")[1] == f"{c['chamfer_mm']:.1f} ± {c['chamfer_mm_std']:.1f}"
+    lo, hi = c["chamfer_mm_ci95"]
+    assert first_row.split(" | ")[1] == f"{c['chamfer_mm']:.1f} [{lo:.1f}, {hi:.1f}]"  # no no-prior row: no mark
     hmvae_row = next(l for l in lines if l.startswith("| hmvae |"))
     assert hmvae_row.count("n/a [^2]") == 2  # footnotes are numbered in reading order
     mine = next(l for l in lines if l.startswith("| my_prior |"))
@@ -67,7 +68,10 @@ def test_csv_long_format(table):
     rows = list(csv.DictReader(io.StringIO(format_csv(table))))
     assert len(rows) == 3 * 6 * 3  # prior x cell x metric
     assert list(rows[0]) == ["table", "protocol_version", "profile", "prior", "points", "fps", "metric", "unit",
-                             "value", "std", "sequences", "frames", "na_reason"]
+                             "value", "std", "sequences", "frames", "na_reason", "ci95_lo", "ci95_hi",
+                             "vs_no_prior_diff", "vs_no_prior_ci95_lo", "vs_no_prior_ci95_hi", "vs_no_prior_significant",
+                             "vs_no_prior_better", "best_prior", "vs_best_diff", "vs_best_ci95_lo", "vs_best_ci95_hi",
+                             "vs_best_significant", "vs_best_better"]
     c = _cell(table, "vposer-slerp", 1000, 10)
     row = next(r for r in rows if r["prior"] == "vposer-slerp" and r["points"] == "1000" and r["fps"] == "10"
                and r["metric"] == "mpjpe_mm")
@@ -87,7 +91,8 @@ def test_latex_booktabs_headline(table):
     assert r"n/a$^{2}$" in tex and f"$^{{2}}$ {NA}" in tex and r"$^{1}$ incomplete: 1 of 2 units" in tex
     assert r"vposer-slerp & 27 & 25 & 24 & 20 & 24 & 20 \\" in tex
     c = _cell(table, "vposer-slerp", 100, 5)
-    assert f"vposer-slerp & {c['chamfer_mm']:.1f} & " in tex
+    lo, hi = c["chamfer_mm_ci95"]
+    assert f"vposer-slerp & {c['chamfer_mm']:.1f}{{\\scriptsize\\,[{lo:.1f}, {hi:.1f}]}} & " in tex
     assert "Surface" not in tex  # headline metric only
 
 

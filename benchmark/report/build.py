@@ -144,7 +144,7 @@ table.results th{background:#f4f4f4;text-align:left}
 table.results tr.paper{font-style:italic;color:#666}
 table.results a{color:inherit;text-decoration:none;border-bottom:1px dotted #999}
 td.na{color:#999} .bad{color:#c0392b;font-weight:600} .ok{color:#27803b} .muted{color:#999}
-.bw{color:#c0392b} .note{color:#555;font-size:.9em;max-width:70em}
+.bw{color:#c0392b} .win{color:#1e7b34;font-weight:bold} .note{color:#555;font-size:.9em;max-width:70em}
 table.kv{font-size:.85em;border-collapse:collapse} table.kv th{text-align:left;padding-right:1em;vertical-align:top}
 figure{display:inline-block;margin:.5em 1em .5em 0;vertical-align:top} figcaption{font-size:.8em;color:#555;max-width:40em}
 figure img{max-width:100%} .anims{display:flex;flex-wrap:wrap;gap:.3em}

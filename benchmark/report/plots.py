@@ -1,8 +1,9 @@
 """The report's plots (matplotlib, headless Agg, PNG).
 
-- :func:`sweep_plots`: a metric against each numeric grid axis, one line per prior (error bars: std
-  over sequences), one panel per value of the other axes; the paper's numbers, where the spec has
-  them, as dashed lines of the prior's colour. Table1: against points per frame (a panel per fps)
+- :func:`sweep_plots`: a metric against each numeric grid axis, one line per prior (error bars: the
+  cell's 95 % bootstrap interval where the table has one, else the std over sequences), one panel
+  per value of the other axes; the paper's numbers, where the spec has them, as dashed lines of
+  the prior's colour. Table1: against points per frame (a panel per fps)
   and against fps (a panel per point count); denoise: against σ (a panel per mode); inbetween:
   against the gap; sls: against p and against f (its sweep codes ``p100``, ``f20`` split into a
   letter and a number). A grid without a numeric axis gets a bar chart.
@@ -88,6 +89,22 @@ def paper_rows(table: dict, metric: str) -> dict:
     return {}
 
 
+def error_bars(cells: list, metric: str) -> np.ndarray:
+    """``yerr`` (2 x cells: below, above the mean) of the cells' ``metric``: the distance to the ends
+    of its interval (``<metric>_ci95``) where the cell has one, else ± its std; 0 without either."""
+    out = np.zeros((2, len(cells)))
+    for i, c in enumerate(cells):
+        mean, ci = _val(c.get(metric)), c.get(f"{metric}_ci95")
+        if not np.isfinite(mean):
+            continue
+        if ci is not None:
+            out[:, i] = max(0.0, mean - float(ci[0])), max(0.0, float(ci[1]) - mean)
+        elif f"{metric}_ci95" not in c:
+            std = _val(c.get(f"{metric}_std"))
+            out[:, i] = 0.0 if not np.isfinite(std) else std
+    return out
+
+
 def _save(fig, path: Path) -> Path:
     fig.savefig(path, dpi=100, bbox_inches="tight")
     _plt().close(fig)
@@ -96,7 +113,7 @@ def _save(fig, path: Path) -> Path:
 
 def sweep_plots(table: dict, metric: str, out_dir: Path, colours: dict, stem: str) -> list[tuple[str, Path]]:
     """(caption, path) of the plots of ``metric`` against each numeric axis of the table's grid."""
-    from benchmark.run.writers import metric_label
+    from benchmark.run.writers import has_intervals, metric_label
 
     plt = _plt()
     coords = _coords(table)
@@ -120,7 +137,7 @@ def sweep_plots(table: dict, metric: str, out_dir: Path, colours: dict, stem: st
             for row in table["rows"]:
                 p = row["prior"]
                 ys = np.array([_val(row["cells"][i].get(metric)) for i in idx], dtype=float)
-                es = np.array([_val(row["cells"][i].get(f"{metric}_std")) for i in idx], dtype=float)
+                es = error_bars([row["cells"][i] for i in idx], metric)
                 if np.isfinite(ys).any():
                     ax.errorbar(xs, ys, yerr=np.nan_to_num(es), color=colours[p], marker="o", ms=4, lw=1.5, capsize=2,
                                 label=p)
@@ -149,7 +166,9 @@ def sweep_plots(table: dict, metric: str, out_dir: Path, colours: dict, stem: st
         path = _save(fig, out_dir / f"{stem}__{metric}__vs_{_safe(x_axis)}.png")
         out.append((f"{metric_label(metric)} against {_axis_label(x_axis)}"
                     + (f", one panel per {', '.join(_axis_label(a) for a in others)}" if others else "")
-                    + ("; dashed: the paper's numbers" if paper else ""), path))
+                    + ("; dashed: the paper's numbers" if paper else "")
+                    + ("; error bars: the 95 % bootstrap interval over sequences" if has_intervals(table)
+                       else "; error bars: ± std over sequences"), path))
     if not numeric:
         out.append(_bars(table, metric, out_dir, colours, stem))
     return out
@@ -165,7 +184,7 @@ def _bars(table, metric, out_dir, colours, stem):
     width = 0.8 / max(1, len(table["rows"]))
     for j, row in enumerate(table["rows"]):
         ys = [_val(c.get(metric)) for c in row["cells"]]
-        es = [_val(c.get(f"{metric}_std")) for c in row["cells"]]
+        es = error_bars(row["cells"], metric)
         ax.bar(np.arange(len(cells)) + j * width, np.nan_to_num(ys), width, yerr=np.nan_to_num(es),
                color=colours[row["prior"]], label=row["prior"])
     ax.set_xticks(np.arange(len(cells)) + width * (len(table["rows"]) - 1) / 2)

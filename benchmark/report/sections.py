@@ -32,6 +32,8 @@ def about_html(table: dict) -> str:
         ("made", f"{prov.get('timestamp')}: {prov.get('command', '')}"),
         ("versions", ", ".join(f"{k} {v}" for k, v in versions.items())),
         ("std", table.get("std_definition")),
+        ("interval", table.get("interval_definition")),
+        ("paired comparison", table.get("paired_definition")),
     ]
     rows = "".join(f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in items if v not in (None, ""))
     return f'<details class="about"><summary>Profile and provenance</summary><table class="kv">{rows}</table></details>'
@@ -39,7 +41,8 @@ def about_html(table: dict) -> str:
 
 def metric_table(table: dict, metric: str, reports: dict, grid_keys: list) -> str:
     from benchmark.report.plots import paper_rows
-    from benchmark.run.writers import ARROWS, cell_label, format_number, metric_label
+    from benchmark.run.writers import (ARROWS, SIGNIFICANT_MARK, cell_label, cell_text, format_number, has_intervals,
+                                       interval_note, metric_label, significant_win)
 
     better = next((m.get("better") for m in table["metrics"] if m["name"] == metric), None)
     cells = table["rows"][0]["cells"]
@@ -53,18 +56,24 @@ def metric_table(table: dict, metric: str, reports: dict, grid_keys: list) -> st
             if c.get(metric) is None:
                 tds.append(f'<td class="na" title="{esc(reason or "no value")}"><a href="#{cr.anchor}">n/a</a></td>')
                 continue
-            std = c.get(f"{metric}_std")
-            text = format_number(c[metric], metric) + (f" ± {format_number(std, metric)}" if std is not None else "")
+            text = cell_text(c, metric, mark=False)
+            win = ""
+            if significant_win(c, metric):
+                p = c["paired"][metric]["no_prior"]
+                tip = (f"better than no-prior: difference {format_number(p['diff'], metric)}, paired interval "
+                       f"{format_number(p['ci95'][0], metric)} to {format_number(p['ci95'][1], metric)} excludes 0")
+                win = f' <span class="win" title="{esc(tip)}">{SIGNIFICANT_MARK}</span>'
             flag = ' <span class="bw" title="backwards fits in this cell">⟲</span>' if any(
                 d.backwards for d in cr.diag.values()) else ""
-            tds.append(f'<td><a href="#{cr.anchor}">{esc(text)}</a>{flag}</td>')
+            tds.append(f'<td><a href="#{cr.anchor}">{esc(text)}</a>{win}{flag}</td>')
         body.append(f"<tr><th>{esc(row['prior'])}</th>{''.join(tds)}</tr>")
     for prior, values in paper_rows(table, metric).items():
         tds = "".join(f"<td>{'' if v is None else esc(format_number(v, metric))}</td>" for v in values)
         body.append(f'<tr class="paper"><th>{esc(prior)} (paper)</th>{tds}</tr>')
     arrow = ARROWS.get(better, "")
+    note = f'<p class="note">{esc(interval_note(table).replace("`", ""))}</p>' if has_intervals(table) else ""
     return (f'<h3>{esc(metric_label(metric))} {arrow}</h3><table class="results"><thead><tr><th>prior</th>{head}</tr>'
-            f'</thead><tbody>{"".join(body)}</tbody></table>')
+            f'</thead><tbody>{"".join(body)}</tbody></table>{note}')
 
 
 def _convergence(units: list) -> str:

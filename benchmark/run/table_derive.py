@@ -13,14 +13,29 @@ import math
 import statistics
 from typing import Any, Iterable, Mapping
 
+import numpy as np
+
 from benchmark.core.fit_diagnostics import cell_diagnostics
+from benchmark.core.intervals import LEVEL, RESAMPLES, bootstrap_ci, excludes_zero, paired_bootstrap, weighted_mean
 from benchmark.core.json_io import canonical_json
 from benchmark.core.work_units import (TABLE_FORMAT_VERSION, WorkUnit, spec_field, grid_cells, metric_specs,
-                                       profile_sizes, si_metric, spec_source, table_rules, validate_unit_result)
+                                       profile_sizes, si_metric, spec_source, stable_seed, table_rules,
+                                       validate_unit_result)
 
 log = logging.getLogger("benchmark.results")  # the name it had before the split
 
 STD_DEFINITION = "population standard deviation (ddof=0) over sequences of the per-sequence means"
+INTERVAL_DEFINITION = (f"{LEVEL:.0%} percentile bootstrap interval of the cell's frame-weighted mean: its sequences "
+                       f"(each with its mean and its frames) resampled with replacement, {RESAMPLES} times; none with "
+                       "fewer than 2 sequences")
+PAIRED_DEFINITION = ("per cell and metric, against no-prior and against the cell's best prior by the metric's mean: the "
+                     "frame-weighted mean of the per-sequence differences (this prior minus the other) over the "
+                     f"sequences both cells have, its {LEVEL:.0%} paired bootstrap interval (sequence indices resampled "
+                     "jointly), whether the interval excludes 0 (significant), and whether this prior does better")
+SEED_RULE = ("numpy.random.default_rng(stable_seed('bootstrap', seed, prior, cell, metric)) for a cell's interval, "
+             "stable_seed('paired', seed, prior, vs, cell, metric) for a paired comparison; seed: the table's seed, "
+             "cell: the canonical JSON of its grid coordinates (benchmark.core.work_units.stable_seed)")
+NO_PRIOR = "no-prior"
 
 
 _META_KEYS = {"units", "profile", "seed", "device", "priors", "provenance", "data", "body", "sequences", "wall_s",
@@ -56,6 +71,13 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
     ``fingerprint`` (sha256 of the sorted unit fingerprints). A cell missing any unit has
     ``na_reason: "incomplete: k of n units"`` and no metrics; a cell whose units report n/a has
     their reason. A metric that some sequences lack is ``null`` with its reason in ``metric_na``.
+
+    Uncertainty (:mod:`benchmark.core.intervals`, seeded by :data:`SEED_RULE`): ``<metric>_ci95``,
+    ``[lo, hi]`` (:data:`INTERVAL_DEFINITION`; ``null`` with the reason in ``ci_na`` below 2
+    sequences); ``per_sequence``, the values the intervals come from (``{"id": [...], "frames":
+    [...], "<metric>": [...]}``, aligned lists, reported units); ``paired`` (:data:`PAIRED_DEFINITION`):
+    metric -> ``{"no_prior": comparison, "best": comparison}`` (each where it applies), a comparison
+    being ``{"vs", "sequences", "diff", "ci95", "significant", "better"}``.
     """
     unknown = set(meta) - _META_KEYS
     if unknown:
@@ -98,8 +120,9 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
         for cell in cells:
             group = groups.get((prior, canonical_json(cell)), [])
             done = [results[u.unit_id] for u in group if u.unit_id in results]
-            row_cells.append(_derive_cell(cell, len(group), done, metrics))
+            row_cells.append(_derive_cell(cell, len(group), done, metrics, (meta["seed"], prior)))
         rows.append({"prior": prior, "cells": row_cells})
+    _add_paired(rows, cells, metrics, meta["seed"])
 
     if "provenance" in meta and meta["provenance"] is not None:
         provenance = dict(meta["provenance"])
@@ -142,6 +165,9 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
         "metrics": metrics,
         "headline_metric": table_spec.get("headline_metric", metrics[0]["name"]),
         "std_definition": STD_DEFINITION,
+        "interval_definition": INTERVAL_DEFINITION,
+        "paired_definition": PAIRED_DEFINITION,
+        "bootstrap": {"resamples": RESAMPLES, "level": LEVEL, "method": "percentile", "seed_rule": SEED_RULE},
         "counts": {
             "units_planned": len(units),
             "units_done": len(done_results),
@@ -155,7 +181,8 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
     return table
 
 
-def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list[dict]) -> dict:
+def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list[dict], seed_parts: tuple) -> dict:
+    """One cell from its units' results; ``seed_parts``: (table seed, prior), for its intervals' seeds."""
     out: dict[str, Any] = dict(cell)
     out["units"] = n_units
     if n_units == 0:
@@ -174,7 +201,8 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
     if len(set(ids)) != len(ids):
         raise ValueError(f"cell {dict(cell)}: a sequence appears in two units: {sorted({i for i in ids if ids.count(i) > 1})[:5]}")
     frames = [row["frames"] for row in seqs]
-    metric_na = {}
+    metric_na, ci_na = {}, {}
+    per_sequence: dict[str, list] = {"id": ids, "frames": frames}
     for m in metrics:
         name = m["name"]
         key, factor = si_metric(name)
@@ -182,6 +210,7 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
         if len(have) < len(seqs):
             out[name] = None
             out[f"{name}_std"] = None
+            out[f"{name}_ci95"] = None
             given = list(dict.fromkeys(row["na"][key] for row in seqs
                                        if key not in row["sums"] and key in (row.get("na") or {})))
             metric_na[name] = ("; ".join(given) if given and not have
@@ -192,6 +221,13 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
         out[name] = factor * total / sum(frames)
         per_seq = [factor * row["sums"][key] / row["frames"] for row in seqs]
         out[f"{name}_std"] = statistics.pstdev(per_seq) if len(per_seq) > 1 else 0.0
+        if len(per_seq) > 1:
+            rng = np.random.default_rng(stable_seed("bootstrap", *seed_parts, canonical_json(cell), name))
+            out[f"{name}_ci95"] = list(bootstrap_ci(per_seq, frames, rng))
+        else:
+            out[f"{name}_ci95"] = None
+            ci_na[name] = f"{len(per_seq)} sequence: no interval"
+        per_sequence[name] = per_seq
     out["sequences"] = len(seqs)
     out["frames"] = sum(frames)
     diagnostics = cell_diagnostics(seqs)
@@ -201,4 +237,59 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
     out["eval_s"] = math.fsum(r["timings"]["eval_s"] for r in done)
     if metric_na:
         out["metric_na"] = metric_na
+    if ci_na:
+        out["ci_na"] = ci_na
+    out["per_sequence"] = per_sequence
+    return out
+
+
+def _add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], table_seed) -> None:
+    """The table-level pass: each cell's ``paired`` comparisons (:data:`PAIRED_DEFINITION`), against
+    ``no-prior`` and against the cell's best prior, for every metric with per-sequence values."""
+    for j, coords in enumerate(cells):
+        cell_json = canonical_json(coords)
+        for m in metrics:
+            name = m["name"]
+            have = {row["prior"]: row["cells"][j] for row in rows
+                    if not row["cells"][j].get("na_reason") and row["cells"][j].get(name) is not None
+                    and name in (row["cells"][j].get("per_sequence") or {})}
+            if not have:
+                continue
+            pick = min if m["better"] == "lower" else max
+            best = pick(have, key=lambda p: have[p][name])  # ties: the first row
+            for prior, cell in have.items():
+                refs = {}
+                if prior != NO_PRIOR and NO_PRIOR in have:
+                    refs["no_prior"] = NO_PRIOR
+                if prior != best:
+                    refs["best"] = best
+                comparisons = {}
+                for role, ref in refs.items():
+                    rng = np.random.default_rng(stable_seed("paired", table_seed, prior, ref, cell_json, name))
+                    comparison = _paired(cell["per_sequence"], have[ref]["per_sequence"], name, m["better"], ref, rng)
+                    if comparison is not None:
+                        comparisons[role] = comparison
+                if comparisons:
+                    cell.setdefault("paired", {})[name] = comparisons
+
+
+def _paired(a: Mapping, b: Mapping, metric: str, better: str, vs: str, rng: np.random.Generator) -> dict | None:
+    """One paired comparison of ``a``'s metric against ``b``'s (``per_sequence`` blocks) over the
+    sequences both have, weighted by ``a``'s frames; None when they share no sequence."""
+    where = {sid: k for k, sid in enumerate(b["id"])}
+    pairs = [(i, where[sid]) for i, sid in enumerate(a["id"]) if sid in where]
+    if not pairs:
+        return None
+    va = [a[metric][i] for i, _ in pairs]
+    vb = [b[metric][k] for _, k in pairs]
+    w = [a["frames"][i] for i, _ in pairs]
+    out: dict[str, Any] = {"vs": vs, "sequences": len(pairs)}
+    if len(pairs) < 2:
+        out.update(diff=weighted_mean(np.subtract(va, vb), w), ci95=None, significant=None,
+                   ci_na="1 sequence in common: no interval")
+    else:
+        diff, ci = paired_bootstrap(va, vb, w, rng)
+        out.update(diff=diff, ci95=list(ci), significant=excludes_zero(ci))
+    gain = -out["diff"] if better == "lower" else out["diff"]
+    out["better"] = None if gain == 0 else bool(gain > 0)
     return out

@@ -2,11 +2,14 @@
 
 - ``<stem>.json``: the table itself (atomic write).
 - ``<stem>.md``: Markdown: a header (title, profile, protocol version, device, seed, revision), one
-  table per metric (headline first), one row per prior and one column per grid cell, mean ± std;
-  ``n/a`` cells carry a footnote with their reason; the paper's own numbers, where the spec has
-  them, are added as separate, labelled rows.
-- ``<stem>.csv``: long format, one line per prior x cell x metric.
-- ``<stem>.tex``: a booktabs ``tabular`` of the headline metric.
+  table per metric (headline first), one row per prior and one column per grid cell, the mean and
+  its 95 % interval ``25.0 [19.1, 31.2]``, :data:`SIGNIFICANT_MARK` on a significant win over
+  ``no-prior`` (tables derived before the intervals: mean ± std); ``n/a`` cells carry a footnote
+  with their reason; the paper's own numbers, where the spec has them, are added as separate,
+  labelled rows.
+- ``<stem>.csv``: long format, one line per prior x cell x metric, with the interval and the paired
+  comparisons (against ``no-prior`` and the cell's best prior).
+- ``<stem>.tex``: a booktabs ``tabular`` of the headline metric, with the intervals and the mark.
 
 Numbers arrive already in reported units (the derivation converted them); nothing here rescales.
 """
@@ -23,10 +26,12 @@ from typing import Mapping, Sequence
 from benchmark.core.fit_diagnostics import (BACKWARDS_DEG, CONVERGED_MAX_DECREASE, CONVERGENCE_WINDOW, FLAG, MISORIENTED_DEG,
                                       cell_flagged)
 from benchmark.core.json_io import atomic_write_json, atomic_write_text
+from benchmark.run.table_derive import NO_PRIOR
 
 log = logging.getLogger(__name__)
 
 FORMATS = ("json", "md", "csv", "tex")
+SIGNIFICANT_MARK = "†"  # a cell whose win over no-prior is significant (paired interval excludes 0)
 ARROWS = {"lower": "↓", "higher": "↑"}
 TEX_ARROWS = {"lower": r"$\downarrow$", "higher": r"$\uparrow$"}
 # Readable names for known metrics; others are derived from the name (see metric_label).
@@ -79,6 +84,52 @@ def format_number(value: float | None, name: str) -> str:
     if metric_unit(name) in ("mm", "cm"):
         return f"{value:.1f}"
     return f"{value:.3g}"
+
+
+def format_interval(interval, name: str) -> str:
+    """``[lo, hi]`` in the metric's number format."""
+    lo, hi = interval
+    return f"[{format_number(lo, name)}, {format_number(hi, name)}]"
+
+
+def significant_win(cell: Mapping, metric: str) -> bool:
+    """Whether the cell beats ``no-prior`` on ``metric`` with a paired interval that excludes 0."""
+    comparison = ((cell.get("paired") or {}).get(metric) or {}).get("no_prior") or {}
+    return comparison.get("significant") is True and comparison.get("better") is True
+
+
+def cell_text(cell: Mapping, metric: str, mark: bool = True) -> str:
+    """A served cell's number as the tables show it: ``25.0 [19.1, 31.2]`` (no interval below 2
+    sequences), then :data:`SIGNIFICANT_MARK` on a significant win over no-prior (``mark``); a cell
+    derived before the intervals: ``25.0 ± 9.3``."""
+    text = format_number(cell[metric], metric)
+    if f"{metric}_ci95" in cell:
+        interval = cell[f"{metric}_ci95"]
+        text += f" {format_interval(interval, metric)}" if interval is not None else ""
+    elif cell.get(f"{metric}_std") is not None:
+        text += f" ± {format_number(cell[f'{metric}_std'], metric)}"
+    if mark and significant_win(cell, metric):
+        text += f" {SIGNIFICANT_MARK}"
+    return text
+
+
+def has_intervals(table: Mapping) -> bool:
+    """Whether the table was derived with intervals (cells with ``<metric>_ci95``)."""
+    names = [m["name"] for m in table["metrics"]]
+    return any(f"{n}_ci95" in c for r in table["rows"] for c in r["cells"] for n in names)
+
+
+def interval_note(table: Mapping) -> str:
+    """The sentence under each Markdown table: what the brackets and the mark mean."""
+    level = (table.get("bootstrap") or {}).get("level", 0.95)
+    text = (f"In brackets: the {level:.0%} bootstrap interval of the mean over sequences (none for a cell of one "
+            "sequence).")
+    if any(r["prior"] == NO_PRIOR for r in table["rows"]):
+        text += (f" {SIGNIFICANT_MARK}: better than `{NO_PRIOR}` in this cell, the paired {level:.0%} bootstrap "
+                 "interval of the per-sequence difference excluding 0.")
+    else:
+        text += f" No `{NO_PRIOR}` row: no cell is marked as a significant win over it."
+    return text
 
 
 def _metrics_in_order(table: Mapping) -> list[dict]:
@@ -182,7 +233,12 @@ def format_markdown(table: Mapping) -> str:
     warning = profile_warning(table)
     if warning:
         lines += ["", f"> **Warning.** {warning}"]
-    lines += ["", f"Each number: mean over all output frames of all sequences ± {table.get('std_definition', 'standard deviation over sequences')}."]
+    intervals = has_intervals(table)
+    if intervals:
+        lines += ["", "Each number: mean over all output frames of all sequences, then in brackets its "
+                      f"{table.get('interval_definition', 'bootstrap interval over sequences')}."]
+    else:
+        lines += ["", f"Each number: mean over all output frames of all sequences ± {table.get('std_definition', 'standard deviation over sequences')}."]
 
     for metric in _metrics_in_order(table):
         name = metric["name"]
@@ -198,15 +254,15 @@ def format_markdown(table: Mapping) -> str:
                 if reason is not None:
                     out.append(f"n/a {note(reason)}")
                 else:
-                    std = cell.get(f"{name}_std")
                     flag = f" {FLAG}" if cell_flagged(cell.get("diagnostics")) else ""
-                    out.append(format_number(cell[name], name) + (f" ± {format_number(std, name)}" if std is not None else "")
-                               + flag)
+                    out.append(cell_text(cell, name) + flag)
             lines.append(f"| {row['prior']} | " + " | ".join(out) + " |")
         paper = _paper_rows(table, name)
         for prior, numbers in paper:
             shown = ["–" if v is None else f"{v:g}" for v in numbers]
             lines.append(f"| *{prior} (paper, own data)* | " + " | ".join(f"*{s}*" for s in shown) + " |")
+        if intervals:
+            lines += ["", interval_note(table)]
         if paper:
             lines += ["", "Rows in *italics* are the numbers printed in the paper, measured on the paper's own "
                           "data: for reference only, not produced by this run."]
@@ -252,25 +308,72 @@ def _diagnostics_section(rows: list, labels: list[str]) -> list[str]:
 # CSV and LaTeX
 # --------------------------------------------------------------------------------------------
 
+PAIRED_ROLES = {"no_prior": "vs_no_prior", "best": "vs_best"}  # cell["paired"][metric] key -> CSV column prefix
+_PAIRED_FIELDS = ("diff", "ci95_lo", "ci95_hi", "significant", "better")
+
+
+def _csv_number(value) -> str:
+    return "" if value is None else repr(float(value))
+
+
+def _csv_flag(value) -> str:
+    return "" if value is None else str(bool(value)).lower()
+
+
+def _paired_columns(cell: Mapping, metric: str, role: str) -> list[str]:
+    c = ((cell.get("paired") or {}).get(metric) or {}).get(role)
+    if not c:
+        return [""] * len(_PAIRED_FIELDS)
+    lo, hi = c["ci95"] if c.get("ci95") is not None else (None, None)
+    return [_csv_number(c["diff"]), _csv_number(lo), _csv_number(hi), _csv_flag(c.get("significant")),
+            _csv_flag(c.get("better"))]
+
+
 def format_csv(table: Mapping) -> str:
-    """Long format: one line per prior x cell x metric (``value`` and ``std`` in ``unit``)."""
+    """Long format: one line per prior x cell x metric (``value``, ``std``, ``ci95_lo``,
+    ``ci95_hi`` in ``unit``), then the paired comparisons: ``vs_no_prior_*`` (against no-prior),
+    ``best_prior`` (the cell's best prior by the metric's mean) and ``vs_best_*`` (against it): the
+    mean difference this prior minus the other, its interval, ``significant`` (the interval
+    excludes 0) and ``better`` (``true`` / ``false``). Empty where it does not apply."""
     grid_keys = list(table["grid"])
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(["table", "protocol_version", "profile", "prior", *grid_keys, "metric", "unit", "value", "std",
-                     "sequences", "frames", "na_reason"])
+                     "sequences", "frames", "na_reason", "ci95_lo", "ci95_hi",
+                     *(f"vs_no_prior_{f}" for f in _PAIRED_FIELDS), "best_prior", *(f"vs_best_{f}" for f in _PAIRED_FIELDS)])
+    best = _best_priors(table)
     for row in table["rows"]:
-        for cell in row["cells"]:
+        for j, cell in enumerate(row["cells"]):
             for metric in table["metrics"]:
                 name = metric["name"]
                 reason = _cell_reason(cell, name)
                 value = "" if reason is not None else repr(float(cell[name]))
                 std = cell.get(f"{name}_std")
+                ci = cell.get(f"{name}_ci95") if reason is None else None
                 writer.writerow([table["table"], table["protocol_version"], table["profile"], row["prior"],
                                  *(cell[k] for k in grid_keys), name, metric_unit(name) or "", value,
                                  "" if reason is not None or std is None else repr(float(std)),
-                                 cell.get("sequences", ""), cell.get("frames", ""), reason or ""])
+                                 cell.get("sequences", ""), cell.get("frames", ""), reason or "",
+                                 *((_csv_number(ci[0]), _csv_number(ci[1])) if ci is not None else ("", "")),
+                                 *_paired_columns(cell, name, "no_prior"), best.get((j, name), ""),
+                                 *_paired_columns(cell, name, "best")])
     return buf.getvalue()
+
+
+def _best_priors(table: Mapping) -> dict[tuple[int, str], str]:
+    """(cell index, metric) -> the cell's best prior, as the paired comparisons name it (empty for a
+    table derived before them)."""
+    out = {}
+    for row in table["rows"]:
+        for j, cell in enumerate(row["cells"]):
+            for metric, roles in (cell.get("paired") or {}).items():
+                if (roles or {}).get("best"):
+                    out[(j, metric)] = roles["best"]["vs"]
+    for row in table["rows"]:  # the best prior itself has no comparison against the best
+        for j, cell in enumerate(row["cells"]):
+            for metric in cell.get("paired") or {}:
+                out.setdefault((j, metric), row["prior"])
+    return out
 
 
 _TEX_ESCAPES = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
@@ -282,7 +385,9 @@ def tex_escape(text: str) -> str:
 
 
 def format_latex(table: Mapping) -> str:
-    """A booktabs ``tabular`` of the headline metric (needs ``\\usepackage{booktabs}``)."""
+    """A booktabs ``tabular`` of the headline metric (needs ``\\usepackage{booktabs}``): each mean with its
+    interval in small type and ``$^\\dagger$`` on a significant win over no-prior, explained in a
+    note under the table (tables derived before the intervals: the mean alone)."""
     grid_keys = list(table["grid"])
     rows = table["rows"]
     cells = rows[0]["cells"] if rows else []
@@ -295,6 +400,10 @@ def format_latex(table: Mapping) -> str:
            f"% table {table['table']}, protocol version {table['protocol_version']}, profile {table['profile']}, "
            f"device {table['device']}, seed {table['seed']}",
            f"% {metric_label(name)}: mean over all output frames of all sequences"]
+    intervals = has_intervals(table)
+    level = (table.get("bootstrap") or {}).get("level", 0.95)
+    if intervals:
+        out.append(f"% in brackets: {table.get('interval_definition', 'bootstrap interval over sequences')}")
     if warning:
         out.append(f"% WARNING: {warning}")
     out += [rf"\begin{{tabular}}{{l{'r' * n}}}", r"\toprule",
@@ -310,7 +419,12 @@ def format_latex(table: Mapping) -> str:
                 marks.setdefault(reason, len(marks) + 1)
                 values.append(rf"n/a$^{{{marks[reason]}}}$")
             else:
-                values.append(format_number(cell[name], name))
+                text = format_number(cell[name], name)
+                if cell.get(f"{name}_ci95") is not None:
+                    text += rf"{{\scriptsize\,{format_interval(cell[f'{name}_ci95'], name)}}}"
+                if significant_win(cell, name):
+                    text += r"$^\dagger$"
+                values.append(text)
         out.append(tex_escape(row["prior"]) + " & " + " & ".join(values) + r" \\")
     paper = _paper_rows(table, name)
     if paper:
@@ -318,6 +432,11 @@ def format_latex(table: Mapping) -> str:
         for prior, numbers in paper:
             out.append(tex_escape(prior) + " & " + " & ".join("--" if v is None else f"{v:g}" for v in numbers) + r" \\")
     out.append(r"\bottomrule")
+    if intervals:
+        note = (rf"In brackets: {level * 100:.0f}\% bootstrap interval over sequences. "
+                + (rf"$^\dagger$ better than {tex_escape(NO_PRIOR)}, paired {level * 100:.0f}\% interval of the "
+                   "difference excluding 0." if any(r["prior"] == NO_PRIOR for r in rows) else ""))
+        out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize {note.strip()}}} \\")
     for reason, k in marks.items():
         out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize $^{{{k}}}$ {tex_escape(reason)}}} \\")
     out.append(r"\end{tabular}")
