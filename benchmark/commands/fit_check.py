@@ -23,9 +23,19 @@ def add_command(sub) -> None:
                    help="override the table spec's objective.start_search (how per-frame priors search their start); "
                         "default: the spec's rule")
 
+    p.add_argument("--robustness", action="store_true",
+                   help="instead of the targets: fit the prior at table1's sparsest and densest cell, again with the "
+                        "observation moved by 1e-6 m and with 3x the steps, print how far MPJPE moves; exit 1 above 1 mm")
+
     def run(args) -> int:
         from benchmark.commands.common import resolve_device
-        from benchmark.tools.fit_check import run_fit_check
+        from benchmark.tools.fit_check import run_fit_check, run_robustness
+
+        if args.robustness:
+            if args.start_search is not None:
+                raise ValueError("fit-check: --robustness checks table1's own rules; drop --start-search")
+            return run_robustness(prior=args.prior, profile_name=args.profile, device=resolve_device(args.device),
+                                  out=args.out, jobs=args.jobs)
 
         fps = int(args.fps) if float(args.fps).is_integer() else args.fps
         return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,

@@ -13,7 +13,12 @@ Every completion-type unit (table1, sls, captured scans) stores, per sequence, i
 - ``final_data_mm``: the data term (the objective without the prior term) at the last step;
 - ``data_decrease_last10``: the data term's relative decrease over the last
   ``CONVERGENCE_WINDOW`` of the steps, ``(d[s0] - d[last]) / d[s0]``;
-- ``converged``: ``data_decrease_last10 <= CONVERGED_MAX_DECREASE``.
+- ``converged``: protocol v6 (``objective.step_rule: plateau``): the objective's relative change
+  over the plateau rule's window, at the full constant learning rate, was within its tolerance
+  when the descent stopped (``plateau_decrease``; ``steps``: the steps the fit took, anneal
+  included; :class:`benchmark.protocols.fit_state.PlateauRule`); versions 1-5:
+  ``data_decrease_last10 <= CONVERGED_MAX_DECREASE`` (a flag a fit whose cosine schedule has
+  already shrunk its steps can pass while still far from its minimum).
 
 :func:`cell_diagnostics` sums them per table cell (the table's ``diagnostics`` and the Markdown
 "Fit diagnostics" section); a cell with a backwards or unconverged fit is marked in every metric
@@ -71,11 +76,13 @@ def convergence(trace: Iterable[float]) -> float:
 
 
 def sequence_diagnostics(data_trace: torch.Tensor, fit_root: torch.Tensor | None = None,
-                         gt_root: torch.Tensor | None = None) -> list[dict]:
+                         gt_root: torch.Tensor | None = None, plateau: Mapping | None = None) -> list[dict]:
     """Per sequence (see the module docstring).
 
     data_trace: (steps, B) the data term (mm) of every sequence at every step.
     fit_root, gt_root: (B, T, 3, 3) root rotations at the output timestamps, or None (no ground truth).
+    plateau: the log of :func:`benchmark.protocols.fit_state.optimise_to_plateau` (protocol v6), or
+    None (versions 1-5: the last-10 % flag decides ``converged``).
     """
     trace = data_trace.detach().to("cpu", torch.float64).numpy()
     out = []
@@ -83,6 +90,10 @@ def sequence_diagnostics(data_trace: torch.Tensor, fit_root: torch.Tensor | None
         dec = convergence(trace[:, b])
         d = {"final_data_mm": round(float(trace[-1, b]), 4), "data_decrease_last10": round(float(dec), 5),
              "converged": bool(dec <= CONVERGED_MAX_DECREASE)}
+        if plateau is not None:
+            dec_b = plateau["plateau_decrease"][b]
+            d.update(converged=bool(plateau["converged"][b]), plateau_decrease=None if dec_b is None else float(dec_b),
+                     steps=int(plateau["steps"]), descent_steps=int(plateau["descent_steps"][b]))
         if fit_root is not None and gt_root is not None:
             root, facing = root_errors(fit_root[b].detach().cpu().numpy(), gt_root[b].detach().cpu().numpy())
             d.update(root_err_deg=round(float(root.mean()), 3), facing_err_deg=round(float(facing.mean()), 3),
@@ -106,6 +117,11 @@ def cell_diagnostics(rows: Iterable[Mapping]) -> dict | None:
         "data_decrease_last10_max": max(float(d["data_decrease_last10"]) for d in diags),
         "final_data_mm": float(np.mean([float(d["final_data_mm"]) for d in diags])),
     }
+    with_plateau = [d for d in diags if "plateau_decrease" in d]
+    if with_plateau:
+        changes = [abs(float(d["plateau_decrease"])) for d in with_plateau if d["plateau_decrease"] is not None]
+        out["plateau_change_max"] = max(changes) if changes else None
+        out["steps_max"] = max(int(d["steps"]) for d in with_plateau)
     if with_gt:
         out["root_err_deg"] = float(np.mean([float(d["root_err_deg"]) for d in with_gt]))
         out["root_err_deg_max"] = max(float(d["root_err_deg"]) for d in with_gt)

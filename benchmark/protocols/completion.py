@@ -31,7 +31,8 @@ import torch
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.facing import FACING_RULES, facing_search, observed_facing
-from benchmark.protocols.fit_state import FitState, body_parameters, init_state, optimise, parameter_groups
+from benchmark.protocols.fit_state import (FitState, PlateauRule, body_parameters, init_state, optimise,
+                                           optimise_to_plateau, parameter_groups)
 from benchmark.protocols.start_search import (START_SEARCH_RULES, encoded_start, is_prior_free, limb_start_search,
                                               prior_free_start)
 from priors.base import FitBatch, PriorAdapter
@@ -43,7 +44,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         generator: torch.Generator, device, lr_final_fraction: float = 0.1, loss_vertices: int | None = None,
         callback=None, facing: str = "heading8", shape_lr_scale: float = 1.0,
         points_per_step: int | None = None, latent_init: str = "sample",
-        start_search: str = "none") -> tuple[FitState, dict]:
+        start_search: str = "none", plateau: PlateauRule | None = None) -> tuple[FitState, dict]:
     """Optimise one batch (see module docstring). Returns the state and a log: ``history`` (the
     logged steps), ``data_trace`` ((steps, B) the data term of every sequence at every step, mm)
     and, with ``facing="search"``, the facing search's choices.
@@ -64,6 +65,10 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
 
     ``latent_init``: where the prior's latents start (:func:`initial_latents`): ``"sample"`` (the
     adapter's ``init_latents``) or ``"mean"`` (table1 protocol v3: the prior's mean).
+
+    ``plateau``: the step rule of protocol v6 (:class:`~benchmark.protocols.fit_state.PlateauRule`):
+    ``steps`` is then the cap, and the log's ``plateau`` holds the steps taken and each sequence's
+    convergence. None: ``steps`` steps of cosine decay (versions 1-5).
     """
     subset = body.loss_vertex_indices(loss_vertices)
     if facing not in FACING_RULES:
@@ -86,6 +91,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         state = init_state(adapter, body, batch, generator, device, data_term=data_term, latent_init=latent_init)
 
     trace = []  # (B,) data term of every step: the convergence diagnostics (benchmark.core.fit_diagnostics)
+    objective_trace = []  # (B,) objective of every step: the plateau rule (protocol v6)
     sampler = None
     if points_per_step is not None:
         sampler = torch.Generator().manual_seed(int(torch.randint(0, 2**62, (1,), generator=generator)))
@@ -105,13 +111,20 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         data = data_term(verts.flatten(0, 1), b_sample=points_per_step, generator=sampler).view(B, n).mean(1) * 1000.0
         trace.append(data.detach())
         prior = adapter.prior_term(state.latents)
+        objective_trace.append((data + lambda_prior * prior).detach())
         return (data + lambda_prior * prior).sum(), lambda: {"data_mm": float(data.detach().mean()),
                                                               "prior": float(prior.detach().mean())}
 
-    history = optimise(adapter.name, parameter_groups(state, lr, shape_lr_scale), steps, lr, lr_final_fraction, step_loss,
-                       callback=callback)
+    groups = parameter_groups(state, lr, shape_lr_scale)
+    plateau_log = {}
+    if plateau is None:
+        history = optimise(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, callback=callback)
+    else:
+        history, plateau_log = optimise_to_plateau(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, objective_trace,
+                                                   plateau, callback=callback)
     data_trace = torch.stack(trace) if trace else torch.zeros(0, B)
-    return state, {"history": history, "data_trace": data_trace, **facing_log}
+    return state, {"history": history, "data_trace": data_trace, **facing_log,
+                   **({"plateau": plateau_log} if plateau_log else {})}
 
 
 @torch.no_grad()

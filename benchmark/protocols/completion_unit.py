@@ -320,6 +320,9 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     else:
         obs = degrade(data.scans, int(cell["points"]), float(cell["fps"]), seed=degrade_seed,
                       capture_fps=float(table_spec["data"]["capture_fps"]))
+    offset = float(table_spec["data"].get("observation_offset_m", 0.0))
+    if offset:  # fit-check --robustness's probe (benchmark/tools/fit_check.py): never set in a table
+        obs = dataclasses.replace(obs, points=obs.points + offset)
     fp = fingerprint(obs)
     batch = observation_batch(obs, float(table_spec["data"]["window_s"]), data.out_t, device)
     obj = table_spec["objective"]
@@ -329,7 +332,7 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
                       lambda_prior=float(obj["lambda_prior"]), generator=g, device=device,
                       loss_vertices=loss_vertex_count(profile), facing=facing_rule(table_spec),
                       shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(table_spec),
-                      start_search=start_search_rule(table_spec))
+                      start_search=start_search_rule(table_spec), plateau=plateau_rule(table_spec))
     t1 = time.perf_counter()
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
     sp = profile.get("surface_points", "all")
@@ -339,7 +342,8 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     per_seq = evaluate(body, output, data, device, surface_points=None if sp in (None, "all") else int(sp))
     t2 = time.perf_counter()
     gt_pose = None if no_joints else unit_ground_truth_pose(data_source, unit.sequence_ids, data)
-    diagnostics = sequence_diagnostics(info["data_trace"], rot[:, :, 0], None if gt_pose is None else gt_pose[0][:, :, 0])
+    diagnostics = sequence_diagnostics(info["data_trace"], rot[:, :, 0], None if gt_pose is None else gt_pose[0][:, :, 0],
+                                       plateau=info.get("plateau"))
     for i, (sid, row) in enumerate(zip(unit.sequence_ids, per_seq)):
         row["id"] = sid
         row["diagnostics"] = diagnostics[i]
@@ -380,6 +384,23 @@ def start_search_rule(spec: dict) -> str:
     """How per-frame priors search their start (``objective.start_search``: ``none``, the rule of
     table1 protocol versions 1-3, or ``limbs``: :func:`benchmark.protocols.start_search.limb_start_search`)."""
     return str(spec["objective"].get("start_search", "none"))
+
+
+STEP_RULES = ("cosine", "plateau")  # objective.step_rule: versions 1-5 cosine over the profile's steps; v6 plateau
+
+
+def plateau_rule(spec: dict):
+    """The step rule of ``objective.step_rule`` (protocol v6: ``plateau``, with ``objective.plateau``'s
+    sizes; :class:`benchmark.protocols.fit_state.PlateauRule`), or None for versions 1-5's cosine
+    schedule over the profile's steps."""
+    from benchmark.protocols.fit_state import PlateauRule
+
+    obj = spec["objective"]
+    schedule = str(obj.get("step_rule", "cosine"))
+    if schedule not in STEP_RULES:
+        src = spec.get("_source") or f"benchmark/tables/{spec.get('name', '?')}.yaml"
+        raise ValueError(f"{src}: field 'objective.step_rule' is {schedule!r}; choose one of {', '.join(STEP_RULES)}")
+    return PlateauRule.from_spec(obj.get("plateau")) if schedule == "plateau" else None
 
 
 def unit_ground_truth_pose(data_source: CompletionData, sequence_ids, data: UnitData):

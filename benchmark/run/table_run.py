@@ -112,7 +112,9 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     n_cells = 1
     for values in spec["grid"].values():
         n_cells *= len(values)
-    print(f"{len(ids)} sequences, {len(priors)} priors, {n_cells} cells, {profile['steps']} steps per fit")
+    capped = str((spec.get("objective") or {}).get("step_rule", "cosine")) == "plateau"
+    steps = f"each fit to its plateau, at most {profile['steps']} steps" if capped else f"{profile['steps']} steps per fit"
+    print(f"{len(ids)} sequences, {len(priors)} priors, {n_cells} cells, {steps}")
 
     # build every adapter before planning, so the spec hash covers the embedded weights' hashes
     adapters = {}

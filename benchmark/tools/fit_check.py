@@ -83,3 +83,106 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
     failed = [r[0] for r in rows if not r[3]]
     print("fit-check: " + ("every target met" if not failed else f"FAILED: {', '.join(failed)}"))
     return 1 if failed else 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Robustness: does a cell's number survive a float perturbation and three times the steps?
+# ---------------------------------------------------------------------------------------------
+
+ROBUSTNESS_CELLS = ((100, 5), (10000, 10))  # the sparsest and the densest table1 cell
+PERTURBATION_M = 1e-6  # every observed point moved by this along x, y and z
+LONGER = 3  # the long run's steps: this times the most steps a base fit took, descending throughout
+MAX_MOVE_MM = 1.0  # the largest move of a cell's MPJPE (mm) a number may show and still mean something
+
+
+def robustness_specs(spec: dict, profile: dict, base_steps: int) -> dict:
+    """The two probes of a base run (table1 ``spec`` restricted to its cells, under ``profile``):
+    ``perturbed``, the same rules with the observation moved by PERTURBATION_M
+    (``data.observation_offset_m``); ``longer``, the plateau rule's tolerance set to 0 (the descent
+    never stops early) and the step cap LONGER times ``base_steps``. Returns
+    ``{name: (spec, profile)}``."""
+    perturbed = copy.deepcopy(spec)
+    perturbed["data"]["observation_offset_m"] = PERTURBATION_M
+    longer = copy.deepcopy(spec)
+    plateau = dict(longer["objective"].get("plateau") or {})
+    plateau["tolerance"] = 0.0
+    longer["objective"]["plateau"] = plateau
+    long_profile = dict(profile, steps=LONGER * int(base_steps))
+    return {"perturbed": (perturbed, profile), "longer": (longer, long_profile)}
+
+
+def mpjpe_moves(base: dict, probe: dict) -> tuple[float, float]:
+    """(move of the cell's MPJPE, largest move of a sequence's MPJPE), mm, between two derived cells."""
+    cell_move = abs(float(probe["mpjpe_mm"]) - float(base["mpjpe_mm"]))
+    seq_b = dict(zip(base["per_sequence"]["id"], base["per_sequence"]["mpjpe_mm"]))
+    seq_p = dict(zip(probe["per_sequence"]["id"], probe["per_sequence"]["mpjpe_mm"]))
+    seq_move = max(abs(seq_p[k] - seq_b[k]) for k in seq_b)
+    return cell_move, seq_move
+
+
+def run_robustness(prior: str, profile_name: str | None = None, device: str = "cpu", out: str = "runs/fit-check",
+                   seed: int = 0, jobs: int | None = None) -> int:
+    """``fit-check --robustness``: ``prior`` on table1's sparsest and densest cell under the
+    profile's sequences and rules (the base), then under each probe of :func:`robustness_specs`.
+    Prints each cell's MPJPE and how far each probe moves it; exit 1 when a move exceeds
+    MAX_MOVE_MM (a number a float perturbation or more steps moves by more measures the optimiser,
+    not the prior)."""
+    from pathlib import Path
+
+    from benchmark.body import get_body
+    from benchmark.core.outdir import OutDirLock, check_out_dir
+    from benchmark.run.catalog import get_profile, load_table_spec
+    from benchmark.run.registry import get_prior_class
+    from benchmark.run.table_run import run_table
+
+    spec = copy.deepcopy(load_table_spec("table1"))
+    if str(spec["objective"].get("step_rule", "cosine")) != "plateau":
+        raise ValueError("fit-check --robustness: table1's objective.step_rule is not 'plateau' (protocol v6); "
+                         "the longer probe needs the plateau rule")
+    spec.pop("paper", None)  # the paper's columns are not this run's grid
+    profile = get_profile(profile_name or ("full" if device.startswith("cuda") else "quick"), table="table1")
+    get_prior_class(prior)
+    out_dir = check_out_dir(out)
+    backend = None if jobs is None else {"jobs": jobs}
+
+    def run(name, run_spec, run_profile, key):
+        one = dict(run_spec, grid={"points": [key[0]], "fps": [key[1]]})
+        result = run_table(one, run_profile, [prior], body, device, seed, Path(out_dir) / f"{name}-{key[0]}x{key[1]}",
+                           backend_options=backend)
+        if result["failures"]:
+            raise RuntimeError(f"fit-check: {len(result['failures'])} unit(s) of the {name} run failed; see the log above")
+        cell = result["table"]["rows"][0]["cells"][0]
+        if cell.get("na_reason"):
+            raise RuntimeError(f"fit-check: the {name} run's cell {key[0]} / {key[1]} is n/a: {cell['na_reason']}")
+        return cell
+
+    base, probes = {}, {"perturbed": {}, "longer": {}}
+    with OutDirLock(out_dir, command=f"python -m benchmark fit-check --robustness --prior {prior}"):
+        body = get_body("anny", device=device)
+        for key in ROBUSTNESS_CELLS:
+            base[key] = run("base", spec, profile, key)
+            steps = int((base[key].get("diagnostics") or {}).get("steps_max") or profile["steps"])
+            for name, (s, p) in robustness_specs(spec, profile, steps).items():
+                probes[name][key] = run(name, s, p, key)
+    print(f"\nfit-check --robustness: {prior}, table1 protocol v{spec['protocol_version']}, profile {profile['name']}, "
+          f"{next(iter(base.values()))['sequences']} sequences; probes: observation moved by {PERTURBATION_M:g} m, "
+          f"{LONGER} x the steps each base fit took ({out_dir})")
+    print(f"{'cell':<14}{'MPJPE':>9}{'converged':>11}{'steps':>7}{'perturbed':>22}{'longer':>22}  result")
+    failed = []
+    for key in ROBUSTNESS_CELLS:
+        b = base[key]
+        diag = b.get("diagnostics") or {}
+        shown, ok = [], True
+        for name in ("perturbed", "longer"):
+            cell_move, seq_move = mpjpe_moves(b, probes[name][key])
+            ok &= cell_move <= MAX_MOVE_MM
+            shown.append(f"{cell_move:6.2f} (seq {seq_move:6.2f})")
+        conv = f"{diag.get('sequences', 0) - diag.get('not_converged', 0)}/{diag.get('sequences', 0)}"
+        steps = diag.get("steps_max", "–")
+        print(f"{f'{key[0]} / {key[1]}':<14}{b['mpjpe_mm']:>9.1f}{conv:>11}{steps:>7}{shown[0]:>22}{shown[1]:>22}  "
+              f"{'ok' if ok else 'FAIL'}")
+        if not ok:
+            failed.append(f"{key[0]} / {key[1]}")
+    print(f"moves in mm (cell mean; largest single sequence); a cell passes when both cell moves are <= {MAX_MOVE_MM:g} mm")
+    print("fit-check --robustness: " + ("every cell robust" if not failed else f"FAILED: {', '.join(failed)}"))
+    return 1 if failed else 0

@@ -1,0 +1,115 @@
+"""The step rule of table1 protocol v6 (benchmark.protocols.fit_state.PlateauRule,
+optimise_to_plateau): a fit stops where its objective has plateaued at the constant learning rate,
+a fit still falling cannot pass, and the verdict reaches the per-sequence diagnostics."""
+
+import pytest
+import torch
+
+from benchmark.core.fit_diagnostics import cell_diagnostics, cell_flagged, sequence_diagnostics
+from benchmark.protocols.fit_state import PlateauRule, optimise, optimise_to_plateau
+
+
+def _problem(scales, targets=None):
+    """B independent 1-D problems: objective_b = 1 + scale_b * (x_b - target_b)^2 from x = 0 (targets: 3)."""
+    x = torch.zeros(len(scales), requires_grad=True)
+    s = torch.tensor(scales)
+    c = torch.tensor(targets or [3.0] * len(scales))
+    trace = []
+
+    def step_loss(step):
+        f = 1.0 + s * (x - c).square()
+        trace.append(f.detach())
+        return f.sum(), lambda: {"f": float(f.detach().mean())}
+
+    return x, trace, step_loss
+
+
+def test_stops_at_the_plateau_then_anneals():
+    x, trace, step_loss = _problem([1.0, 1.0])
+    rule = PlateauRule(window=20, tolerance=0.005, smoothing=5, check_every=5, anneal_steps=10)
+    history, log = optimise_to_plateau("toy", [x], 2000, 0.1, 0.1, step_loss, trace, rule)
+    assert log["stopped"] == "plateau" and log["converged"] == [True, True]
+    assert log["steps"] == max(log["descent_steps"]) + 10 == len(trace)
+    assert max(log["descent_steps"]) < 2000 and x.detach().sub(3.0).abs().max() < 0.1
+    assert all(abs(v) <= 0.005 for v in log["plateau_decrease"])
+    assert history[-1]["step"] == log["steps"] - 1
+
+
+def test_a_fit_still_falling_at_the_cap_is_not_converged():
+    """A tiny learning rate: the objective falls slowly but steadily; the cap stops it unconverged,
+    whereas the versions 1-5 flag (the last 10 % of a cosine schedule) calls the same fit converged."""
+    x, trace, step_loss = _problem([1.0, 1.0])
+    rule = PlateauRule(window=20, tolerance=0.005, smoothing=5, check_every=5, anneal_steps=10)
+    _, log = optimise_to_plateau("toy", [x], 200, 1e-3, 0.1, step_loss, trace, rule)
+    assert log["stopped"] == "cap" and log["converged"] == [False, False] and log["steps"] == 200
+    assert min(log["plateau_decrease"]) > 0.005
+
+    x2, trace2, step_loss2 = _problem([1.0, 1.0])
+    optimise("toy", [x2], 200, 1e-3, 0.01, step_loss2)
+    old = sequence_diagnostics(torch.stack(trace2))
+    assert all(d["converged"] for d in old)  # the old flag was fooled by the shrunken steps
+
+
+def test_each_sequence_stops_at_its_own_plateau_and_is_held_there():
+    x, trace, step_loss = _problem([1.0, 1.0], [0.5, 10.0])  # Adam's steps are ~lr: the second needs more
+    rule = PlateauRule(window=20, tolerance=0.002, smoothing=5, check_every=5, anneal_steps=0)
+    _, log = optimise_to_plateau("toy", [x], 5000, 0.05, 0.1, step_loss, trace, rule)
+    fast, slow = log["descent_steps"]
+    assert log["converged"] == [True, True] and fast < slow == log["steps"]
+    values = torch.stack(trace)[:, 0]
+    assert torch.all(values[fast:] == values[fast])  # held: the first sequence never moved again
+    assert (x.detach() - torch.tensor([0.5, 10.0])).abs().max() < 0.5
+
+
+def test_variables_that_are_not_batch_first_are_refused():
+    x = torch.zeros(3, requires_grad=True)
+    trace = []
+
+    def step_loss(step):
+        f = (x - 1.0).square().sum()[None].expand(2)  # 2 sequences, one variable of 3 values shared
+        trace.append(f.detach())
+        return f.sum(), dict
+
+    with pytest.raises(ValueError, match="batch first"):
+        optimise_to_plateau("toy", [x], 500, 0.1, 0.1, step_loss, trace, PlateauRule())
+
+
+def test_a_rising_objective_is_not_a_plateau():
+    x = torch.zeros(1, requires_grad=True)
+    trace = []
+
+    def step_loss(step):  # the objective rises by 1 % per step whatever the optimiser does
+        f = 1.0 + 0.0 * x + 0.01 * step
+        trace.append(f.detach())
+        return f.sum(), dict
+
+    rule = PlateauRule(window=10, tolerance=0.005, smoothing=2, check_every=1, anneal_steps=0)
+    _, log = optimise_to_plateau("toy", [x], 60, 0.1, 0.1, step_loss, trace, rule)
+    assert log["stopped"] == "cap" and log["converged"] == [False] and log["plateau_decrease"][0] < -0.005
+
+
+def test_a_cap_below_the_rule_runs_the_cap_and_flags_every_sequence():
+    x, trace, step_loss = _problem([1.0, 2.0])
+    _, log = optimise_to_plateau("toy", [x], 20, 0.1, 0.1, step_loss, trace, PlateauRule())
+    assert len(trace) == 20 and log["converged"] == [False, False] and log["plateau_decrease"] == [None, None]
+    diags = sequence_diagnostics(torch.stack(trace), plateau=log)
+    assert [d["converged"] for d in diags] == [False, False] and diags[0]["plateau_decrease"] is None
+    cell = cell_diagnostics([{"diagnostics": d} for d in diags])
+    assert cell["not_converged"] == 2 and cell["plateau_change_max"] is None and cell_flagged(cell)
+
+
+def test_diagnostics_carry_the_verdict_and_the_steps():
+    trace = torch.ones(120, 2)
+    log = {"descent_steps": [100, 70], "steps": 120, "stopped": "plateau", "plateau_decrease": [0.001, -0.02],
+           "converged": [True, False]}
+    diags = sequence_diagnostics(trace, plateau=log)
+    assert [d["converged"] for d in diags] == [True, False]
+    assert diags[0]["steps"] == 120 and diags[0]["descent_steps"] == 100
+    cell = cell_diagnostics([{"diagnostics": d} for d in diags])
+    assert cell["not_converged"] == 1 and cell["plateau_change_max"] == pytest.approx(0.02) and cell["steps_max"] == 120
+
+
+@pytest.mark.parametrize("bad", [{"windw": 5}, {"window": 0}, {"tolerance": -1}, {"anneal_steps": -1}])
+def test_bad_rules_are_refused(bad):
+    with pytest.raises(ValueError, match="objective.plateau"):
+        PlateauRule.from_spec(bad)
