@@ -50,3 +50,68 @@ def test_fit_check_faces_every_sequence_the_right_way_and_converges(fit_check_ru
 def test_fit_check_meets_every_target(fit_check_run):
     r, rows = fit_check_run
     assert r.returncode == 0, r.stdout[-3000:]
+
+
+# -- fit-check --robustness (table1 protocol v6) --
+
+def test_robustness_probes_move_the_observation_and_triple_the_steps():
+    from benchmark.run.catalog import get_profile, load_table_spec
+    from benchmark.tools.fit_check import LONGER, PERTURBATION_M, robustness_specs
+
+    spec = load_table_spec("table1")
+    profile = get_profile("quick", table="table1")
+    probes = robustness_specs(spec, profile, base_steps=240)
+    perturbed, p_profile = probes["perturbed"]
+    assert perturbed["data"]["observation_offset_m"] == PERTURBATION_M and p_profile == profile
+    longer, l_profile = probes["longer"]
+    assert longer["objective"]["plateau"]["tolerance"] == 0.0 and l_profile["steps"] == LONGER * 240
+    assert "observation_offset_m" not in spec["data"] and spec["objective"]["plateau"]["tolerance"] > 0  # untouched
+
+
+def test_robustness_moves_are_read_per_cell_and_per_sequence():
+    from benchmark.tools.fit_check import mpjpe_moves
+
+    base = {"mpjpe_mm": 40.0, "per_sequence": {"id": ["a", "b"], "mpjpe_mm": [30.0, 50.0]}}
+    probe = {"mpjpe_mm": 40.5, "per_sequence": {"id": ["b", "a"], "mpjpe_mm": [48.0, 33.0]}}
+    assert mpjpe_moves(base, probe) == pytest.approx((0.5, 3.0))
+
+
+def test_a_probe_offset_moves_every_observed_point(tmp_path):
+    """data.observation_offset_m reaches the fit's observation: the unit's fingerprint changes."""
+    import copy
+
+    from benchmark.body import get_body
+    from benchmark.run.catalog import get_profile, load_table_spec
+    from benchmark.run.table_run import run_table
+
+    spec = load_table_spec("table1")
+    spec = {**spec, "grid": {"points": [100], "fps": [5]},  # the version 1 start: this tests the data path, not the fit
+            "objective": {**spec["objective"], "facing": "heading8", "start_search": "none"}}
+    spec.pop("paper", None)
+    profile = dict(get_profile("smoke", table="table1"), steps=2)
+    body = get_body("anny", device="cpu")
+    prints = []
+    for offset in (0.0, 1e-6):
+        s = copy.deepcopy(spec)
+        if offset:
+            s["data"]["observation_offset_m"] = offset
+        result = run_table(s, profile, ["no-prior"], body, "cpu", 0, tmp_path / str(offset))
+        prints.append(result["table"]["rows"][0]["cells"][0]["fingerprint"])
+    assert prints[0] != prints[1]
+
+
+def test_robustness_refuses_a_start_search_override(tmp_path):
+    r = _cli("fit-check", "--robustness", "--start-search", "limbs", "--out", str(tmp_path / "fc"), timeout=300)
+    assert r.returncode == 2 and "--robustness" in r.stderr
+
+
+@pytest.mark.slow
+def test_no_prior_is_robust():
+    """no-prior's quick fits at the sparsest and densest cell move by at most 1 mm under a 1e-6 m
+    perturbation of the observation and under 3 x the steps (about 25 min on 2 cores)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        r = _cli("fit-check", "--robustness", "--prior", "no-prior", "--out", f"{tmp}/fc", timeout=6000)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+    assert "every cell robust" in r.stdout

@@ -279,10 +279,15 @@ def _diagnostics_section(rows: list, labels: list[str]) -> list[str]:
     cell, backwards fits, unconverged fits and the mean root-orientation error; empty when no cell has them."""
     if not any(c.get("diagnostics") for row in rows for c in row["cells"]):
         return []
+    plateau = any("steps_max" in (c.get("diagnostics") or {}) for row in rows for c in row["cells"])
+    unconverged = ("objective still changing by more than the plateau rule's tolerance over its window at the constant "
+                   "learning rate when the fit stopped descending, or at the step cap" if plateau else
+                   f"data term still falling by more than {CONVERGED_MAX_DECREASE:.0%} over the last "
+                   f"{CONVERGENCE_WINDOW:.0%} of the steps")
     lines = ["", "## Fit diagnostics", "",
-             f"Per cell: backwards fits (mean facing error > {BACKWARDS_DEG:g}°) / unconverged fits (data term still "
-             f"falling by more than {CONVERGED_MAX_DECREASE:.0%} over the last {CONVERGENCE_WINDOW:.0%} of the steps) / "
-             "sequences, then the mean root-orientation error over the output frames, and the count of misoriented fits "
+             f"Per cell: backwards fits (mean facing error > {BACKWARDS_DEG:g}°) / unconverged fits ({unconverged}) / "
+             "sequences, then the mean root-orientation error over the output frames"
+             + (", the most steps a fit of the cell took" if plateau else "") + ", and the count of misoriented fits "
              f"(mean root-orientation error > {MISORIENTED_DEG:g}°: backwards, or facing the right way upside down) where "
              f"there is one. {FLAG} in the tables above marks a cell with a backwards, misoriented or unconverged fit: its "
              "number measures a fit failure as much as the prior.", "",
@@ -297,6 +302,8 @@ def _diagnostics_section(rows: list, labels: list[str]) -> list[str]:
             text = f"{d['backwards']}/{d['not_converged']}/{d['sequences']}"
             if d.get("root_err_deg") is not None:
                 text += f", {d['root_err_deg']:.0f}°"
+            if d.get("steps_max") is not None:
+                text += f", {d['steps_max']} steps"
             if d.get("misoriented"):
                 text += f", {d['misoriented']} misoriented"
             out.append(f"**{text}** {FLAG}" if cell_flagged(d) else text)
