@@ -28,7 +28,7 @@ def add_command(sub) -> None:
     p.add_argument("--meshes", action="store_true", help="write one PLY mesh per output frame")
     p.add_argument("--no-preview", action="store_true", help="skip the animated preview")
     p.add_argument("--profile", default=None, help="steps and loss vertices from this profile (default: quick on CPU)")
-    p.add_argument("--steps", type=at.positive_int, default=None, help="override the profile's steps")
+    p.add_argument("--steps", type=at.positive_int, default=None, help="override the profile's step cap (table1 v6: each fit stops at its plateau)")
     p.add_argument("--device", default=None)
     p.add_argument("--seed", type=at.seed, default=0)
     p.add_argument("--facing", choices=["observation", "search", "heading8"], default="observation",

@@ -6,8 +6,8 @@ table's capture (``capture_fps``, ``points_per_frame`` of ``benchmark/tables/tab
 folder is used as captured. Then, as in a table1 cell: the frames nearest in time to ``--fps``
 (default 10, table1's densest rate), a seeded random subset of ``--points`` per frame (default:
 all of them), one window (``--window``, default table1's 4 s, shorter if the input is), and the
-table1 fit (:func:`benchmark.protocols.completion.fit`: objective, initialisation, Adam, cosine
-schedule) with the profile's steps and loss-vertex subset.
+table1 fit (:func:`benchmark.protocols.completion.fit`: objective, initialisation, Adam, the
+plateau step rule of table1 v6) with the profile's step cap and loss-vertex subset.
 
 Writes to OUT (a folder):
 
@@ -133,17 +133,23 @@ def truth_diagnostics(body, rot, output, truth, abs_t: torch.Tensor) -> dict:
             "frames_facing_backwards": int((facing > BACKWARDS_DEG).sum())}
 
 
-def convergence(history: list[dict], data_trace) -> dict:
-    """The data term's first and last values and the fit's convergence figure
-    (:func:`benchmark.core.fit_diagnostics.convergence`, the rule every table1 unit records)."""
+def convergence(history: list[dict], data_trace, plateau: dict | None = None) -> dict:
+    """The data term's first and last values and the fit's convergence: under table1's plateau rule
+    (protocol v6, ``plateau``: the fit's log) its verdict, the steps taken and the objective's change
+    over the rule's window; else the versions 1-5 figure
+    (:func:`benchmark.core.fit_diagnostics.convergence`)."""
     from benchmark.core.fit_diagnostics import CONVERGED_MAX_DECREASE, CONVERGENCE_WINDOW
     from benchmark.core.fit_diagnostics import convergence as decrease
 
     trace = [float(v) for v in data_trace[:, 0]]
     rel = decrease(trace)
-    return {"data_mm_first": history[0]["data_mm"], "data_mm_last": history[-1]["data_mm"],
-            "data_decrease_last10": rel, "window_steps": max(1, math.ceil(CONVERGENCE_WINDOW * len(trace))),
-            "converged": bool(rel <= CONVERGED_MAX_DECREASE)}
+    out = {"data_mm_first": history[0]["data_mm"], "data_mm_last": history[-1]["data_mm"],
+           "data_decrease_last10": rel, "window_steps": max(1, math.ceil(CONVERGENCE_WINDOW * len(trace))),
+           "converged": bool(rel <= CONVERGED_MAX_DECREASE)}
+    if plateau is not None:
+        out.update(rule="plateau", converged=bool(plateau["converged"][0]), steps=int(plateau["steps"]),
+                   plateau_decrease=plateau["plateau_decrease"][0])
+    return out
 
 
 def _preview(out: Path, output, truth_vertices, body, out_t, obs) -> str:
@@ -174,7 +180,7 @@ def run_complete(args) -> dict:
     from benchmark.run.catalog import get_profile, load_table_spec
     from benchmark.core.motion import Motion
     from benchmark.protocols.completion import decode_output, fit, observation_batch
-    from benchmark.protocols.completion_unit import latent_init_rule, loss_vertex_count, start_search_rule
+    from benchmark.protocols.completion_unit import latent_init_rule, loss_vertex_count, plateau_rule, start_search_rule
     from benchmark.run.registry import make_adapter
     from benchmark.synthetic.scan_set import write_ply_mesh
 
@@ -203,7 +209,7 @@ def run_complete(args) -> dict:
                       generator=torch.Generator().manual_seed(args.seed), device=device,
                       loss_vertices=loss_vertex_count(profile), facing=args.facing,
                       shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(spec),
-                      start_search=start_search_rule(spec))
+                      start_search=start_search_rule(spec), plateau=plateau_rule(spec))
     fit_s = time.perf_counter() - t0
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
 
@@ -231,13 +237,20 @@ def run_complete(args) -> dict:
 
     history = info["history"]
     diag = {"input": str(args.input), "prior": args.prior, "fit_s": fit_s, "history": history,
-            "convergence": convergence(history, info["data_trace"])}
+            "convergence": convergence(history, info["data_trace"], info.get("plateau"))}
     print("data term (Chamfer, mm, on the loss vertices) by step: "
           + ", ".join(f"{h['step']}: {h['data_mm']:.2f}" for h in history))
     c = diag["convergence"]
-    print(f"convergence: {c['data_mm_first']:.2f} -> {c['data_mm_last']:.2f} mm; decrease over the last "
-          f"{c['window_steps']} steps {100 * c['data_decrease_last10']:.2f}% "
-          f"({'converged' if c['converged'] else 'still decreasing: more steps (--steps, --profile full) may help'})")
+    if c.get("rule") == "plateau":
+        change = c["plateau_decrease"]
+        shown = "n/a (the cap is below the rule's least steps)" if change is None else f"{100 * change:.2f}%"
+        print(f"convergence: {c['data_mm_first']:.2f} -> {c['data_mm_last']:.2f} mm in {c['steps']} steps; objective "
+              f"change over the plateau window at the constant learning rate {shown} "
+              f"({'converged' if c['converged'] else 'not converged within the step cap: raise it (--steps, --profile full)'})")
+    else:
+        print(f"convergence: {c['data_mm_first']:.2f} -> {c['data_mm_last']:.2f} mm; decrease over the last "
+              f"{c['window_steps']} steps {100 * c['data_decrease_last10']:.2f}% "
+              f"({'converged' if c['converged'] else 'still decreasing: more steps (--steps, --profile full) may help'})")
     truth_vertices = None
     if truth is not None:
         abs_t = out_t + t_start
