@@ -105,13 +105,22 @@ def test_robustness_refuses_a_start_search_override(tmp_path):
     assert r.returncode == 2 and "--robustness" in r.stderr
 
 
+def _default_priors():
+    from benchmark.commands.run import default_priors
+    from benchmark.run.catalog import load_table_spec
+
+    return default_priors(load_table_spec("table1"))
+
+
 @pytest.mark.slow
-def test_no_prior_is_robust():
-    """no-prior's quick fits at the sparsest and densest cell move by at most 1 mm under a 1e-6 m
-    perturbation of the observation and under 3 x the steps (about 25 min on 2 cores)."""
+@pytest.mark.parametrize("prior", _default_priors())
+def test_every_default_prior_is_robust(prior):
+    """Each default prior's quick fits at the sparsest and densest cell move by at most 1 mm under a
+    1e-6 m perturbation of the observation and under 3 x the steps (no-prior: about 25 min on 2
+    cores; the window priors take longer)."""
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:
-        r = _cli("fit-check", "--robustness", "--prior", "no-prior", "--out", f"{tmp}/fc", timeout=6000)
+        r = _cli("fit-check", "--robustness", "--prior", prior, "--out", f"{tmp}/fc", timeout=6 * 3600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
     assert "every cell robust" in r.stdout

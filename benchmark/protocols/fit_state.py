@@ -230,18 +230,26 @@ def optimise(prior_name: str, parameters, steps: int, lr: float, lr_final_fracti
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=lr * lr_final_fraction)
     history = []
     for step in range(steps):
-        opt.zero_grad(set_to_none=True)
-        loss, log = step_loss(step)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"prior {prior_name!r}: non-finite loss at step {step}")
-        loss.backward()
-        opt.step()
+        adam_step(opt, prior_name, step_loss, step, history, step == 0 or step == steps - 1 or step % LOG_EVERY == 0,
+                  callback)
         sched.step()
-        if step == 0 or step == steps - 1 or step % LOG_EVERY == 0:
-            history.append({"step": step, **log()})
-        if callback is not None:
-            callback(step, float(loss.detach()))
     return history
+
+
+def adam_step(opt, prior_name: str, step_loss, step: int, history: list, logged: bool, callback=None) -> None:
+    """One optimiser step of :func:`optimise` and :func:`optimise_to_plateau`: the loss of
+    ``step_loss(step)`` (a non-finite one raises FloatingPointError naming the prior and the step),
+    its gradient, the step; the history entry when ``logged``; ``callback(step, loss)``."""
+    opt.zero_grad(set_to_none=True)
+    loss, log = step_loss(step)
+    if not torch.isfinite(loss):
+        raise FloatingPointError(f"prior {prior_name!r}: non-finite loss at step {step}")
+    loss.backward()
+    opt.step()
+    if logged:
+        history.append({"step": step, **log()})
+    if callback is not None:
+        callback(step, float(loss.detach()))
 
 
 @dataclass(frozen=True)
@@ -324,20 +332,8 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
     step = 0
     held = decrease = stopped_at = snapshot = None
 
-    def one(step: int, logged: bool) -> None:
-        opt.zero_grad(set_to_none=True)
-        loss, log = step_loss(step)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"prior {prior_name!r}: non-finite loss at step {step}")
-        loss.backward()
-        opt.step()
-        if logged:
-            history.append({"step": step, **log()})
-        if callback is not None:
-            callback(step, float(loss.detach()))
-
     while step < descent_cap:
-        one(step, step % LOG_EVERY == 0)
+        adam_step(opt, prior_name, step_loss, step, history, step % LOG_EVERY == 0, callback)
         step += 1
         if held is None:  # the batch size, known from the first step's objective
             B = int(trace[-1].shape[0])
@@ -369,7 +365,8 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
     if rule.anneal_steps:
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=rule.anneal_steps, eta_min=lr * lr_final_fraction)
         for i in range(rule.anneal_steps):
-            one(step, i == rule.anneal_steps - 1 or step % LOG_EVERY == 0)
+            adam_step(opt, prior_name, step_loss, step, history, i == rule.anneal_steps - 1 or step % LOG_EVERY == 0,
+                      callback)
             sched.step()
             step += 1
     converged = [bool(abs(v) <= rule.tolerance) for v in decrease.tolist()]
