@@ -104,3 +104,14 @@ def test_fit_check_verdicts():
     assert failed == ["mpjpe_mm"]
     assert set(TARGETS) == {name for name, *_ in check_cell(cell)}
     assert [ok for name, _, _, ok in check_cell({"mpjpe_mm": 1.0}) if name == "backwards"] == [False]  # no diagnostics: fails
+
+
+def test_a_one_step_fit_has_no_decrease_and_is_not_converged():
+    """One step: nothing to judge a decrease by; stored as None (a unit's JSON holds no NaN)."""
+    import json
+
+    d = sequence_diagnostics(torch.ones(1, 2))
+    assert [x["data_decrease_last10"] for x in d] == [None, None] and not any(x["converged"] for x in d)
+    json.dumps(d, allow_nan=False)
+    cell = cell_diagnostics([{"diagnostics": x} for x in d])
+    assert cell["data_decrease_last10_max"] is None and cell["not_converged"] == 2

@@ -88,8 +88,9 @@ def sequence_diagnostics(data_trace: torch.Tensor, fit_root: torch.Tensor | None
     out = []
     for b in range(trace.shape[1]):
         dec = convergence(trace[:, b])
-        d = {"final_data_mm": round(float(trace[-1, b]), 4), "data_decrease_last10": round(float(dec), 5),
-             "converged": bool(dec <= CONVERGED_MAX_DECREASE)}
+        known = math.isfinite(dec)  # a fit of one step has no decrease to measure (JSON holds no NaN)
+        d = {"final_data_mm": round(float(trace[-1, b]), 4), "data_decrease_last10": round(float(dec), 5) if known else None,
+             "converged": bool(known and dec <= CONVERGED_MAX_DECREASE)}
         if plateau is not None:
             dec_b = plateau["plateau_decrease"][b]
             d.update(converged=bool(plateau["converged"][b]), plateau_decrease=None if dec_b is None else float(dec_b),
@@ -114,7 +115,8 @@ def cell_diagnostics(rows: Iterable[Mapping]) -> dict | None:
         "backwards": sum(bool(d.get("backwards")) for d in with_gt),
         "misoriented": sum(float(d["root_err_deg"]) > MISORIENTED_DEG for d in with_gt),
         "not_converged": sum(not d.get("converged", True) for d in diags),
-        "data_decrease_last10_max": max(float(d["data_decrease_last10"]) for d in diags),
+        "data_decrease_last10_max": max((float(d["data_decrease_last10"]) for d in diags
+                                         if d.get("data_decrease_last10") is not None), default=None),
         "final_data_mm": float(np.mean([float(d["final_data_mm"]) for d in diags])),
     }
     with_plateau = [d for d in diags if "plateau_decrease" in d]

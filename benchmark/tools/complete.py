@@ -144,8 +144,9 @@ def convergence(history: list[dict], data_trace, plateau: dict | None = None) ->
     trace = [float(v) for v in data_trace[:, 0]]
     rel = decrease(trace)
     out = {"data_mm_first": history[0]["data_mm"], "data_mm_last": history[-1]["data_mm"],
-           "data_decrease_last10": rel, "window_steps": max(1, math.ceil(CONVERGENCE_WINDOW * len(trace))),
-           "converged": bool(rel <= CONVERGED_MAX_DECREASE)}
+           "data_decrease_last10": rel if math.isfinite(rel) else None,
+           "window_steps": max(1, math.ceil(CONVERGENCE_WINDOW * len(trace))),
+           "converged": bool(math.isfinite(rel) and rel <= CONVERGED_MAX_DECREASE)}
     if plateau is not None:
         out.update(rule="plateau", converged=bool(plateau["converged"][0]), steps=int(plateau["steps"]),
                    plateau_decrease=plateau["plateau_decrease"][0])
@@ -247,6 +248,9 @@ def run_complete(args) -> dict:
         print(f"convergence: {c['data_mm_first']:.2f} -> {c['data_mm_last']:.2f} mm in {c['steps']} steps; objective "
               f"change over the plateau window at the constant learning rate {shown} "
               f"({'converged' if c['converged'] else 'not converged within the step cap: raise it (--steps, --profile full)'})")
+    elif c["data_decrease_last10"] is None:
+        print(f"convergence: {c['data_mm_first']:.2f} -> {c['data_mm_last']:.2f} mm; one step: nothing to judge "
+              "convergence by (not converged)")
     else:
         print(f"convergence: {c['data_mm_first']:.2f} -> {c['data_mm_last']:.2f} mm; decrease over the last "
               f"{c['window_steps']} steps {100 * c['data_decrease_last10']:.2f}% "
