@@ -16,6 +16,7 @@ import pytest
 
 from benchmark.run.catalog import get_profile, load_table_spec
 from benchmark.commands.run import default_priors
+from benchmark.run.backends.local import default_jobs
 from benchmark.run.table_run import run_table
 from goldens import check_or_update
 
@@ -29,7 +30,8 @@ def test_quick_table_matches_committed(name, tmp_path, anny_body, update_goldens
     runs = os.environ.get("BENCHMARK_RUNS_DIR")
     out = Path(runs) / f"{name}_quick" if runs else tmp_path
     spec = load_table_spec(name)
+    # one worker process per core, as `python -m benchmark run` (run_table alone runs its units in this process)
     result = run_table(spec, get_profile("quick", table=name), priors=default_priors(spec), body=anny_body, device="cpu",
-                       seed=0, out_dir=out)
+                       seed=0, out_dir=out, backend_options={"jobs": default_jobs("cpu")})
     assert not result["failures"], result["failures"]
     check_or_update(result["table"], ROOT / "results" / f"{name}.quick.json", spec, update_goldens)
