@@ -330,7 +330,7 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
     history = []
     descent_cap = max_steps - rule.anneal_steps
     step = 0
-    held = decrease = stopped_at = snapshot = None
+    held = held_on = decrease = stopped_at = snapshot = None
 
     while step < descent_cap:
         adam_step(opt, prior_name, step_loss, step, history, step % LOG_EVERY == 0, callback)
@@ -348,7 +348,7 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
         with torch.no_grad():
             if bool(held.any()):  # the held sequences stay where they stopped
                 for p, snap in zip(tensors, snapshot):
-                    p[held.to(p.device)] = snap[held.to(p.device)]
+                    p[held_on] = snap[held_on]
         if step >= rule.min_descent and (step % rule.check_every == 0 or step == descent_cap):
             change = rule.decrease(trace)
             new = ~held & ((change.abs() <= rule.tolerance) | torch.tensor(step == descent_cap))
@@ -356,9 +356,11 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
                 decrease[new] = change[new]
                 stopped_at[new] = step
                 held |= new
+                held_on = held.to(tensors[0].device)  # the mask on the variables' device, moved only when it changes
+                new_on = new.to(tensors[0].device)
                 with torch.no_grad():
                     for p, snap in zip(tensors, snapshot):
-                        snap[new.to(p.device)] = p.detach()[new.to(p.device)]
+                        snap[new_on] = p.detach()[new_on]
             if bool(held.all()):
                 break
     descent = step
