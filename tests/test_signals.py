@@ -416,3 +416,26 @@ def test_ray_init_does_not_keep_the_sigterm_handler_of_the_cli():
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+_STARTS_A_WORKER_BLOCKED = """
+import multiprocessing as mp, signal, time
+from benchmark.run.backends.local import _sigint_blocked
+ctx = mp.get_context("spawn")
+with _sigint_blocked():
+    proc = ctx.Process(target=time.sleep, args=(0,))
+    proc.start()  # the first start in this interpreter: it also starts multiprocessing's resource tracker
+    print(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, []))
+proc.join()
+print(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, []))
+"""
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="no signal masks on this platform")
+def test_the_first_worker_starts_with_sigint_still_blocked():
+    """The resource tracker's start unblocks SIGINT in the starting thread; the worker started right
+    after it must still inherit the block (CI once saw a Ctrl-C kill a first worker in ``import site``)."""
+    done = subprocess.run([sys.executable, "-c", _STARTS_A_WORKER_BLOCKED], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["True", "False"]  # blocked while starting; unblocked again afterwards

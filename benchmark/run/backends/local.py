@@ -150,10 +150,18 @@ def _sigint_blocked():
     """SIGINT blocked in this thread while it starts a worker process: the worker inherits the
     blocked mask and unblocks SIGINT only once it ignores it (:func:`_process_worker`), so that a
     Ctrl-C at that moment cannot print a KeyboardInterrupt traceback from a half-started worker.
-    The driver does not lose the Ctrl-C: another thread takes it, or it waits until the unblock."""
+    The driver does not lose the Ctrl-C: another thread takes it, or it waits until the unblock.
+
+    multiprocessing's resource tracker is started first: ``Process.start()`` starts it on first use,
+    and its start *unblocks* SIGINT in this thread when done (``ResourceTracker.ensure_running``),
+    which left the first worker unprotected (a Ctrl-C then killed it inside ``import site``, with a
+    "Fatal Python error" traceback on the terminal)."""
     if not hasattr(signal, "pthread_sigmask"):
         yield
         return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
     previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
