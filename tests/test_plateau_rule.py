@@ -113,3 +113,17 @@ def test_diagnostics_carry_the_verdict_and_the_steps():
 def test_bad_rules_are_refused(bad):
     with pytest.raises(ValueError, match="objective.plateau"):
         PlateauRule.from_spec(bad)
+
+
+def test_the_floor_makes_the_tolerance_absolute_near_zero():
+    """An objective creeping from 0.014 to 0.011 (sls's landmark term, fitted almost exactly by a free
+    body) changes by about 20 % relative: not a plateau without the floor; with floor 1, by 0.003 / 1."""
+    jitter = [torch.tensor([0.014 - 0.00005 * i, 20.0 - 0.01 * i]) for i in range(60)]
+    plain, floored = PlateauRule(), PlateauRule(floor=1.0)
+    assert abs(float(plain.decrease(jitter)[0])) > 0.1
+    assert abs(float(floored.decrease(jitter)[0])) <= floored.tolerance
+    # above the floor it is the relative change, as without one
+    assert float(floored.decrease(jitter)[1]) == pytest.approx(float(plain.decrease(jitter)[1]))
+    assert PlateauRule.from_spec({"floor": 1}).floor == 1.0
+    with pytest.raises(ValueError, match="floor"):
+        PlateauRule.from_spec({"floor": -1})

@@ -2,6 +2,7 @@
 adaptive weights, units for two priors, determinism, and a smoke table run. Tiny handmade data."""
 
 import copy
+import dataclasses
 import json
 import math
 
@@ -293,3 +294,66 @@ def test_smoke_table_run_writes_json(tmp_path, anny_body, monkeypatch):
         assert 0 < c["chamfer_mm"] < 500 and c["chamfer_mm_std"] == 0.0
         assert 0 < c["landmark_mm"] < 500
     assert (tmp_path / "units").is_dir()
+
+
+# --------------------------------------------------------------------------- protocol v4: start search, plateau rule
+def test_v4_rules_are_in_the_spec():
+    from benchmark.protocols.completion_unit import plateau_rule
+
+    spec = load_table_spec("sls")
+    assert spec["protocol_version"] >= 4 and spec["objective"]["start_search"] == "observation"
+    rule = plateau_rule(spec)
+    table1 = sls_fit.PlateauRule.from_spec(load_table_spec("table1")["objective"]["plateau"])
+    assert rule is not None and rule.floor == 1.0 and rule == dataclasses.replace(table1, floor=1.0)
+    assert get_profile("quick", table="sls")["sequences"] >= 8  # as many as the other quick tables
+
+
+def test_no_prior_starts_from_the_aligned_prior_free_start_and_stops_at_its_plateau(source, cycle_motions, anny_body):
+    from benchmark.protocols.start_search import _START_CACHE
+    from benchmark.run.registry import make_adapter
+
+    ids = sorted(cycle_motions)[:1]
+    spec = tiny_spec()
+    data = source.unit_data(ids)
+    obs = sls_data.observe(data, spec, "p0", 0, ids)  # landmarks only: cheap
+    rule = sls_fit.PlateauRule(window=20, tolerance=0.005, smoothing=5, check_every=5, anneal_steps=10, floor=1.0)
+    _START_CACHE.clear()
+    state, info = sls_fit.fit_sls(make_adapter("no-prior"), anny_body, obs, data.anchor_t, 400, spec["objective"],
+                                  torch.Generator().manual_seed(0), "cpu", loss_vertices=1000, plateau=rule)
+    assert info["facing"] == "aligned" and len(info["start_choice_counts"]) == 3  # arms, legs, neighbours
+    assert sum(info["start_choice_counts"][0]) == 100  # every observed anchor chose one arm start
+    assert [k[1] for k in _START_CACHE] == ["aligned"]  # cached apart from table1's observed facing
+    p = info["plateau"]
+    assert p["steps"] == len(info["data_trace"]) <= 400 and p["steps"] == max(p["descent_steps"]) + rule.anneal_steps
+    assert p["converged"] == [True] and abs(p["plateau_decrease"][0]) <= rule.tolerance
+    diag = sequence_diagnostics_of(info, state, data)
+    assert diag["converged"] and diag["steps"] == p["steps"]
+
+
+def sequence_diagnostics_of(info, state, data):
+    from benchmark.core.fit_diagnostics import sequence_diagnostics
+
+    rot, _, _ = sls_fit.decode_anchors(state, data.anchor_t, None)
+    return sequence_diagnostics(info["data_trace"], rot[:, :, 0].detach(), rot[:, :, 0].detach(),
+                                plateau=info["plateau"])[0]
+
+
+def test_a_window_prior_starts_from_the_encoded_prior_free_start(source, cycle_motions, anny_body):
+    from benchmark.run.registry import make_adapter
+
+    ids = sorted(cycle_motions)[:1]
+    spec = tiny_spec()
+    data = source.unit_data(ids)
+    obs = sls_data.observe(data, spec, "p0", 0, ids)
+    state, info = sls_fit.fit_sls(make_adapter("hmvae"), anny_body, obs, data.anchor_t, 2, spec["objective"],
+                                  torch.Generator().manual_seed(0), "cpu", loss_vertices=1000)
+    assert info["start"] == "encoded prior-free start" and info["start_search_s"] > 0
+    none = {**spec["objective"], "start_search": "none"}
+    _, plain = sls_fit.fit_sls(make_adapter("hmvae"), anny_body, obs, data.anchor_t, 2, none,
+                               torch.Generator().manual_seed(0), "cpu", loss_vertices=1000)
+    assert "start" not in plain and "start_search_s" not in plain
+    # the encoded start fits the landmarks better than the prior's mean does (first step's mocap term)
+    assert info["history"][0]["mocap"] < plain["history"][0]["mocap"]
+    with pytest.raises(ValueError, match="objective.start_search"):
+        sls_fit.fit_sls(make_adapter("hmvae"), anny_body, obs, data.anchor_t, 2, {**none, "start_search": "bogus"},
+                        torch.Generator().manual_seed(0), "cpu", loss_vertices=1000)

@@ -266,27 +266,34 @@ class PlateauRule:
     steps of cosine decay from ``lr`` to ``lr * lr_final_fraction`` settle Adam's jitter. A sequence
     is *converged* when its change was within ``tolerance`` when it stopped descending: it is judged at the full, constant learning
     rate, so a schedule that has already shrunk the steps cannot make a fit that still descends
-    look flat (the flaw of the versions 1-5 flag)."""
+    look flat (the flaw of the versions 1-5 flag).
+
+    ``floor``: the change is relative to ``max(f[s - window], floor)``: an objective that falls to
+    about 0 (sls's landmark term, fitted exactly by a free body) has a relative change that is all
+    jitter, so below ``floor`` the tolerance is absolute, ``tolerance * floor``. 0 (table1): purely
+    relative."""
 
     window: int = 50
     tolerance: float = 0.005
     smoothing: int = 10
     check_every: int = 10
     anneal_steps: int = 50
+    floor: float = 0.0
 
     @classmethod
     def from_spec(cls, value) -> "PlateauRule":
         """The rule of an ``objective.plateau`` mapping (missing keys keep their defaults)."""
         if value is None:
             return cls()
-        unknown = set(value) - {"window", "tolerance", "smoothing", "check_every", "anneal_steps"}
+        unknown = set(value) - {"window", "tolerance", "smoothing", "check_every", "anneal_steps", "floor"}
         if unknown:
             raise ValueError(f"objective.plateau: unknown key(s) {sorted(unknown)}; known: window, tolerance, "
-                             "smoothing, check_every, anneal_steps")
-        rule = cls(**{k: (float(v) if k == "tolerance" else int(v)) for k, v in value.items()})
-        if rule.window < 1 or rule.smoothing < 1 or rule.check_every < 1 or rule.anneal_steps < 0 or rule.tolerance < 0:
+                             "smoothing, check_every, anneal_steps, floor")
+        rule = cls(**{k: (float(v) if k in ("tolerance", "floor") else int(v)) for k, v in value.items()})
+        if (rule.window < 1 or rule.smoothing < 1 or rule.check_every < 1 or rule.anneal_steps < 0 or rule.tolerance < 0
+                or rule.floor < 0):
             raise ValueError(f"objective.plateau: {value!r}: window, smoothing and check_every must be >= 1, "
-                             "anneal_steps and tolerance >= 0")
+                             "anneal_steps, tolerance and floor >= 0")
         return rule
 
     @property
@@ -300,6 +307,8 @@ class PlateauRule:
         d = torch.stack([t.detach().double().cpu() for t in trace[-self.min_descent:]])
         k = self.smoothing
         start, last = d[:k].mean(0), d[-k:].mean(0)
+        if self.floor > 0:
+            return (start - last) / start.clamp_min(self.floor)
         return torch.where(start > 0, (start - last) / start, torch.zeros_like(start))
 
 

@@ -71,8 +71,16 @@ sees a :class:`~priors.base.FitBatch` whose points are each observed anchor's fi
 ``objective.init_scan_points`` (1000) scan points (i.i.d. uniform samples, so an unbiased subset; it
 bounds the cost of the heading search) followed by its 16 landmarks (so p = 0 still has points for
 the translation start and the heading search),
-timestamps the observed anchor times, window_s the longest cycle of the batch. One Adam optimiser,
-cosine schedule to 10 % of ``objective.lr`` over the profile's steps.
+timestamps the observed anchor times, window_s the longest cycle of the batch.
+
+Start search (``objective.start_search``, protocol v4: ``observation``):
+:func:`benchmark.protocols.sls_fit.sls_start`, table1's search with the aligned facing.
+
+Steps (``objective.step_rule``, protocol v4: ``plateau``): one Adam optimiser at the constant
+``objective.lr`` until each sequence's objective (the unweighted sum of its active terms plus
+lambda_prior x prior) plateaus (:class:`benchmark.protocols.fit_state.PlateauRule`, with a floor
+of 1 under the relative change), then a short cosine anneal to 10 %; the profile's steps are the
+cap. Versions 1-3: cosine to 10 % of ``objective.lr`` over the profile's steps.
 
 Decoding the anchors: an adapter with ``decode_anchors(latents, shape) -> (Decoded (B, 100, ...),
 tau_hat (B, 100))`` gives anchor i directly (the structured latent space's representation) and
@@ -101,7 +109,7 @@ import time
 import torch
 
 from benchmark.core.fit_diagnostics import sequence_diagnostics
-from benchmark.protocols.completion_unit import evaluate, loss_vertex_count
+from benchmark.protocols.completion_unit import evaluate, loss_vertex_count, plateau_rule
 from benchmark.protocols.sls_cycles import align_first_anchor, cut_cycles
 from benchmark.protocols.sls_data import Observation, SlsData, SlsUnitData, observe
 from benchmark.protocols.sls_fit import decode_anchors, fit_sls, uses_anchor_decoder
@@ -171,7 +179,7 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: SlsData, de
     g = torch.Generator().manual_seed(unit.seed)
     t0 = time.perf_counter()
     state, info = fit_sls(adapter, body, obs, data.anchor_t, int(profile["steps"]), spec["objective"], g, device,
-                          loss_vertices=loss_vertex_count(profile))
+                          loss_vertices=loss_vertex_count(profile), plateau=plateau_rule(spec))
     t1 = time.perf_counter()
     with torch.no_grad():
         rot, trans, tau_hat = decode_anchors(state, data.anchor_t.to(device), None)
@@ -182,7 +190,7 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: SlsData, de
     t2 = time.perf_counter()
     motions = [source.motions[sid] for sid in unit.sequence_ids]
     gt_pose = ground_truth_pose(source.body, motions, data.anchor_t)
-    diagnostics = sequence_diagnostics(info["data_trace"], rot[:, :, 0], gt_pose[0][:, :, 0])
+    diagnostics = sequence_diagnostics(info["data_trace"], rot[:, :, 0], gt_pose[0][:, :, 0], plateau=info.get("plateau"))
     for b, (sid, row) in enumerate(zip(unit.sequence_ids, per_seq)):
         row["id"] = sid
         row["diagnostics"] = diagnostics[b]
@@ -192,7 +200,10 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: SlsData, de
     return {
         "unit_id": unit.unit_id, "spec_hash": unit.spec_hash, "prior": unit.prior, "cell": dict(unit.cell),
         "sequence_ids": list(unit.sequence_ids), "fingerprint": obs.fingerprint, "per_sequence": per_seq,
-        "timings": {"fit_s": t1 - t0, "eval_s": t2 - t1}, "device": str(device), "na_reason": None,
+        "timings": {"fit_s": t1 - t0, "eval_s": t2 - t1,
+                    **({"start_search_s": info["start_search_s"]} if "start_search_s" in info else {})},
+        "device": str(device), "na_reason": None,
+        **({"start_search": {"start_choice_counts": info["start_choice_counts"]}} if "start_choice_counts" in info else {}),
         "fit_log": info["history"], "terms": info["terms"], "final_weights": info["weights"],
         "decoder": "decode_anchors" if uses_anchor_decoder(adapter) else "completion.body_parameters",
         "arrays": unit_arrays(unit, data, obs, rot, trans, state.shape(), gt_pose),  # the runner stores it as .npz

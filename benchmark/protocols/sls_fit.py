@@ -4,14 +4,17 @@ optimisation of one batch against its observation (the rules: :mod:`benchmark.pr
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.protocols.facing import facing_search
-from benchmark.protocols.fit_state import (FitState, apply_free_rigid, body_parameters, init_state, optimise,
-                                           parameter_groups)
+from benchmark.protocols.fit_state import (FitState, PlateauRule, apply_free_rigid, body_parameters, init_state, optimise,
+                                           optimise_to_plateau, parameter_groups)
+from benchmark.protocols.start_search import (START_SEARCH_RULES, encoded_start, is_prior_free, limb_start_search,
+                                              prior_free_start)
 from benchmark.protocols.sls_data import Observation
 from priors.base import AnchorDecoder, FitBatch, PriorAdapter
 
@@ -113,9 +116,37 @@ def active_terms(adapter, obs: Observation, objective: dict) -> list[str]:
     return terms
 
 
+def sls_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, objective: dict, generator, device,
+              lr: float, lam: float) -> tuple[FitState, dict]:
+    """The start search of ``objective.start_search`` (sls protocol v4, table1's rule of versions 4-5
+    with sls's facing): ``limbs``: a per-frame prior searches its limbs per observed anchor
+    (:func:`~benchmark.protocols.start_search.limb_start_search`); ``observation``: also, every other
+    prior with a motion encoder starts from the prior-free body's limb-searched start (facing +z,
+    the data rules' facing), encoded (:func:`~benchmark.protocols.start_search.encoded_start`);
+    ``none`` (versions 1-3): ``state`` as it is."""
+    rule = str(objective.get("start_search", "none"))
+    if rule not in START_SEARCH_RULES:
+        raise ValueError(f"sls: unknown objective.start_search {rule!r}; choose one of {', '.join(START_SEARCH_RULES)}")
+    if rule == "none":
+        return state, {}
+    if rule == "observation" and is_prior_free(adapter):  # its start is the prior-free start, cached per observation
+        state, log = prior_free_start(body, batch, generator, device, lr, lam, facing="aligned")
+        state.adapter = adapter
+        return state, log
+    state, log = limb_start_search(adapter, body, batch, state, lr, lam)
+    if rule == "observation" and "start_choice_counts" not in log:
+        state, log = encoded_start(adapter, body, batch, state, generator, device, lr, lam, facing="aligned")
+    return state, log
+
+
 def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tensor, steps: int, objective: dict,
-            generator: torch.Generator, device, loss_vertices: int | None = None) -> tuple[FitState, dict]:
-    """Optimise one batch against its observation (see :mod:`benchmark.protocols.sls`)."""
+            generator: torch.Generator, device, loss_vertices: int | None = None,
+            plateau: PlateauRule | None = None) -> tuple[FitState, dict]:
+    """Optimise one batch against its observation (see :mod:`benchmark.protocols.sls`).
+
+    ``plateau``: the step rule of protocol v4 (:class:`~benchmark.protocols.fit_state.PlateauRule`,
+    judged on each sequence's unweighted active data terms plus lambda x prior): ``steps`` is then
+    the cap. None: ``steps`` steps of cosine decay (versions 1-3)."""
     lr = float(objective["lr"])
     lam = float(objective["lambda_prior"])
     ad = objective.get("adaptive", {}) or {}
@@ -139,6 +170,10 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
                            latent_init=latent_init)
     else:
         raise ValueError(f"sls: unknown objective.facing {facing!r}; choose heading8 (protocol v1), aligned or search")
+    t_search = time.perf_counter()
+    state, search_log = sls_start(adapter, body, batch, state, objective, generator, device, lr, lam)
+    if search_log:
+        search_log = {**search_log, "start_search_s": time.perf_counter() - t_search}
     subset = body.loss_vertex_indices(loss_vertices)
     lm_idx = body.landmark_indices.to(device)
     skin_idx = lm_idx if pts is None else (None if subset is None else torch.cat([subset.to(device), lm_idx]))
@@ -150,6 +185,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
     dense = None if pts is None else StaticChamfer(pts.flatten(0, 1))
 
     trace = []  # (B,) the unweighted sum of the active data terms at every step (fit diagnostics)
+    objective_trace = []  # (B,) that sum plus lambda x prior at every step: the plateau rule (protocol v4)
 
     def step_loss(step):
         rot, trans, tau_hat = decode_anchors(state, anchor_t, idx)
@@ -169,6 +205,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
         w = weights.w.to(device=device, dtype=verts.dtype)
         data = sum(w[i] * values[i] for i in range(len(values)))
         prior = adapter.prior_term(state.latents)
+        objective_trace.append(trace[-1] + lam * prior.detach())
 
         def log():
             entry = {"prior": float(prior.detach().mean())}
@@ -180,6 +217,12 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
         return (data + lam * prior).sum(), log
 
     params = parameter_groups(state, lr, float(objective.get("shape_lr_scale", 1.0)))  # as table1 v2
-    history = optimise(adapter.name, params, steps, lr, lr_final, step_loss)
+    plateau_log = {}
+    if plateau is None:
+        history = optimise(adapter.name, params, steps, lr, lr_final, step_loss)
+    else:
+        history, plateau_log = optimise_to_plateau(adapter.name, params, steps, lr, lr_final, step_loss, objective_trace,
+                                                   plateau)
     return state, {"history": history, "terms": terms_used, "data_trace": torch.stack(trace) if trace else torch.zeros(0, B),
-                   "weights": {k: weights.w[i].tolist() for i, k in enumerate(terms_used)}}
+                   "weights": {k: weights.w[i].tolist() for i, k in enumerate(terms_used)}, **search_log,
+                   **({"plateau": plateau_log} if plateau_log else {})}

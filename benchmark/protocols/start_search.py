@@ -17,8 +17,9 @@ import roma
 import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
-from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, frame_chamfer,
-                                              optimise, repeat_batch, rigid_parameters, set_rigid, subset_batch)
+from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, decode_grid,
+                                              frame_chamfer, init_state, optimise, repeat_batch, rigid_parameters,
+                                              set_rigid, subset_batch)
 from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encoder
 
 # objective.start_search: "none"; "limbs" (table1 protocol v4): :func:`limb_start_search` for the
@@ -177,22 +178,34 @@ _START_CACHE: OrderedDict = OrderedDict()
 START_CACHE_SIZE = 8
 
 
+PRIOR_FREE_FACINGS = ("observation", "aligned")
+
+
 def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, lr: float,
-                     lambda_prior: float) -> tuple[FitState, dict]:
+                     lambda_prior: float, facing: str = "observation") -> tuple[FitState, dict]:
     """The prior-free body's start on the observation (the state no-prior's fit starts from under
-    ``start_search: limbs``): its facing found on the observation
-    (:func:`benchmark.protocols.facing.observed_facing`), then :func:`limb_start_search`.
+    ``start_search: limbs``): its facing (``facing``: ``"observation"``, found on the observation,
+    :func:`benchmark.protocols.facing.observed_facing`, table1; ``"aligned"``, facing +z, the
+    facing the sls data rules give every sequence), then :func:`limb_start_search`.
     Deterministic (the prior-free body draws nothing from ``generator``); kept per process for the
     last START_CACHE_SIZE observations and served again as a fresh copy. Returns the state and the
     search's log."""
     from benchmark.protocols.facing import facing_key, observed_facing
     from priors.no_prior import NoPrior
 
-    key = ("start", *facing_key(body, batch, device, lr, lambda_prior), repr(LIMB_START_STAGES), START_SEARCH_STEPS)
+    if facing not in PRIOR_FREE_FACINGS:
+        raise ValueError(f"prior_free_start: unknown facing {facing!r}; choose one of {', '.join(PRIOR_FREE_FACINGS)}")
+    key = ("start", facing, *facing_key(body, batch, device, lr, lambda_prior), repr(LIMB_START_STAGES),
+           START_SEARCH_STEPS)
     hit = _START_CACHE.get(key)
     if hit is None or hit[0] is not body:
         ref_prior = NoPrior(device=device)
-        state, facing_log = observed_facing(ref_prior, body, batch, generator, device, lr, lambda_prior, latent_init="mean")
+        if facing == "aligned":
+            state = init_state(ref_prior, body, batch, generator, device, search_heading=False, latent_init="mean")
+            facing_log = {"facing": "aligned"}
+        else:
+            state, facing_log = observed_facing(ref_prior, body, batch, generator, device, lr, lambda_prior,
+                                                latent_init="mean")
         state, search_log = limb_start_search(ref_prior, body, batch, state, lr, lambda_prior)
         hit = (body, state, {**facing_log, **search_log})
         _START_CACHE[key] = hit
@@ -212,29 +225,38 @@ def _leaf_copy(state: FitState, **changes) -> FitState:
 
 
 def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, generator: torch.Generator, device,
-                  lr: float, lambda_prior: float) -> tuple[FitState, dict]:
+                  lr: float, lambda_prior: float, facing: str = "observation") -> tuple[FitState, dict]:
     """A window or continuous prior's start under ``start_search: observation`` (table1 protocol v5):
     the prior-free body's start on the observation (:func:`prior_free_start`: facing, then limb by
-    limb), at the output timestamps, encoded by the prior (``encode_motion``: the posterior mean);
+    limb; ``facing`` as there), at the output timestamps (or, for a fixed-window prior whose latents
+    follow its own frame grid and cover more, on that grid), encoded by the prior (``encode_motion``:
+    the posterior mean);
     its body shape; the free rigid parameters set to its root orientation and translation at the
     observed frames (:func:`~benchmark.protocols.fit_state.set_rigid`). Latents the encoder does not
     return keep ``state``'s. A prior it does not apply to (:func:`supports_encoded_start`) keeps
     ``state``. Returns the state and a log."""
     if not supports_encoded_start(adapter):
         return state, {"start_search": "none: a per-frame prior or a prior without a motion encoder"}
-    ref, ref_log = prior_free_start(body, batch, generator, device, lr, lambda_prior)
+    ref, ref_log = prior_free_start(body, batch, generator, device, lr, lambda_prior, facing=facing)
+
+    def encoded_on(t):
+        rot, trans = body_parameters(ref, t)
+        enc = adapter.encode_motion(rot, trans, t)
+        return {k: enc.get(k, v).detach().to(v) for k, v in state.latents.items()}
+
+    def mismatch(enc):
+        return [(k, tuple(enc[k].shape), tuple(v.shape)) for k, v in state.latents.items() if enc[k].shape != v.shape]
+
     with torch.no_grad():
-        out_t = batch.output_timestamps
-        rot, trans = body_parameters(ref, out_t)
-        enc = adapter.encode_motion(rot, trans, out_t)
+        latents = encoded_on(batch.output_timestamps)
+        if mismatch(latents) and adapter.window.kind == "fixed":
+            # a prior whose latents follow its own frame grid (Motion-DVAE: one per 30 fps frame),
+            # which covers whole windows: longer than a sequence shorter than a window (sls's cycles)
+            latents = encoded_on(decode_grid(adapter, state.window_s, batch.batch_size, batch.timestamps.device))
         rot_obs, trans_obs = body_parameters(ref, batch.timestamps, observed=True)
-    latents = {}
-    for k, v in state.latents.items():
-        e = enc.get(k, v).detach().to(v)
-        if e.shape != v.shape:
-            raise ValueError(f"start search: prior {adapter.name!r}: encode_motion's {k!r} has shape {tuple(e.shape)}, "
-                             f"its fit's latents {tuple(v.shape)} for the same window: they must agree")
-        latents[k] = e
+    for k, got, want in mismatch(latents):
+        raise ValueError(f"start search: prior {adapter.name!r}: encode_motion's {k!r} has shape {got}, "
+                         f"its fit's latents {want} for the same window: they must agree")
     shape_param = state.shape_param
     if ref.bounded_shape == state.bounded_shape and ref.shape_param.shape == state.shape_param.shape:
         shape_param = ref.shape_param
