@@ -39,6 +39,21 @@ LIMB_START_STAGES = (
 )
 
 
+# A hypothesis wins a frame only when its score is lower than every earlier hypothesis's by more than
+# this fraction; 0 (versions 4-6 of table1, 4 of sls): the lowest score, the first of exact ties.
+START_TIE_MARGIN = 0.0
+
+
+def first_within(scores: torch.Tensor, dim: int, margin: float) -> torch.Tensor:
+    """The index along ``dim`` of the first entry within ``margin`` (relative) of the lowest: with
+    ``margin`` 0, ``argmin`` (the first of exact ties)."""
+    low = scores.min(dim, keepdim=True).values
+    near = scores <= low + margin * low.abs()
+    order = torch.arange(scores.shape[dim], device=scores.device).view([-1 if d == dim % scores.dim() else 1
+                                                                        for d in range(scores.dim())])
+    return torch.where(near, order, scores.shape[dim]).min(dim).values
+
+
 def supports_start_search(adapter: PriorAdapter) -> bool:
     """Whether ``limb_start_search`` applies: a per-frame prior (one latent set per observed frame)
     that can express a given pose in its latents (``encode_motion``: exact for no-prior, the
@@ -132,7 +147,7 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
     optimise(adapter.name, hyp.parameters(), all_steps, lr, 1.0, loss_of)
     with torch.no_grad():
         scores = frame_terms().view(B, K, n)
-    best = scores.argmin(1)  # (B, n)
+    best = first_within(scores, 1, START_TIE_MARGIN)  # (B, n)
 
     def per_frame(x):
         if x is None:
@@ -144,7 +159,7 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
         idx = best.view(B, 1, n, *([1] * (y.dim() - 3))).expand(B, 1, n, *y.shape[3:])
         return y.gather(1, idx)[:, 0].clone().requires_grad_(True)
 
-    whole = scores.mean(2).argmin(1)  # (B,)
+    whole = first_within(scores.mean(2), 1, START_TIE_MARGIN)  # (B,)
 
     def per_sequence(x):
         if x is None:
