@@ -67,6 +67,13 @@ def test_robustness_probes_move_the_observation_and_triple_the_steps():
     assert longer["objective"]["plateau"]["tolerance"] == 0.0 and l_profile["steps"] == LONGER * 240
     assert "observation_offset_m" not in spec["data"] and spec["objective"]["plateau"]["tolerance"] > 0  # untouched
 
+    # a rule with reductions keeps its tolerance (each reduction needs its plateau) and descends longer instead
+    reducing = {**spec, "objective": {**spec["objective"], "plateau": {**spec["objective"]["plateau"], "reductions": 2}}}
+    longer, l_profile = robustness_specs(reducing, profile, base_steps=240)["longer"]
+    plateau = longer["objective"]["plateau"]
+    assert plateau["tolerance"] == spec["objective"]["plateau"]["tolerance"] and plateau["reductions"] == 2
+    assert plateau["min_steps"] == LONGER * 240 - plateau["anneal_steps"] and l_profile["steps"] == LONGER * 240
+
 
 def test_robustness_moves_are_read_per_cell_and_per_sequence():
     from benchmark.tools.fit_check import mpjpe_moves

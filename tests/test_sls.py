@@ -304,7 +304,8 @@ def test_v4_rules_are_in_the_spec():
     assert spec["protocol_version"] >= 4 and spec["objective"]["start_search"] == "observation"
     rule = plateau_rule(spec)
     table1 = sls_fit.PlateauRule.from_spec(load_table_spec("table1")["objective"]["plateau"])
-    assert rule is not None and rule.floor == 1.0 and rule == dataclasses.replace(table1, floor=1.0)
+    assert rule is not None and rule.floor == 1.0 and rule.reductions == 2
+    assert rule == dataclasses.replace(table1, floor=1.0, reductions=2, factor=0.3)
     assert get_profile("quick", table="sls")["sequences"] >= 8  # as many as the other quick tables
 
 

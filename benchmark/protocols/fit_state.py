@@ -271,7 +271,16 @@ class PlateauRule:
     ``floor``: the change is relative to ``max(f[s - window], floor)``: an objective that falls to
     about 0 (sls's landmark term, fitted exactly by a free body) has a relative change that is all
     jitter, so below ``floor`` the tolerance is absolute, ``tolerance * floor``. 0 (table1): purely
-    relative."""
+    relative.
+
+    ``reductions``: a sequence that meets the rule first has its step scaled by ``factor`` (its own
+    learning rate, ``lr * factor ** stage``) and is judged anew once a whole window has passed at
+    that rate; it is held when it meets the rule at its ``reductions``-th reduced rate. 0 (table1
+    version 6): held at the first plateau, at the full rate. At the full rate Adam's steps knock a
+    fit between basins; the reduced rates let it settle in the one it is in (docs/table1.md,
+    "Robustness of version 6"). ``min_steps``: no sequence is held before that many descent steps
+    (the robustness check's longer probe: it keeps descending at its last rate).
+    """
 
     window: int = 50
     tolerance: float = 0.005
@@ -279,21 +288,25 @@ class PlateauRule:
     check_every: int = 10
     anneal_steps: int = 50
     floor: float = 0.0
+    reductions: int = 0
+    factor: float = 0.3
+    min_steps: int = 0
 
     @classmethod
     def from_spec(cls, value) -> "PlateauRule":
         """The rule of an ``objective.plateau`` mapping (missing keys keep their defaults)."""
         if value is None:
             return cls()
-        unknown = set(value) - {"window", "tolerance", "smoothing", "check_every", "anneal_steps", "floor"}
+        known = ("window", "tolerance", "smoothing", "check_every", "anneal_steps", "floor", "reductions", "factor",
+                 "min_steps")
+        unknown = set(value) - set(known)
         if unknown:
-            raise ValueError(f"objective.plateau: unknown key(s) {sorted(unknown)}; known: window, tolerance, "
-                             "smoothing, check_every, anneal_steps, floor")
-        rule = cls(**{k: (float(v) if k in ("tolerance", "floor") else int(v)) for k, v in value.items()})
+            raise ValueError(f"objective.plateau: unknown key(s) {sorted(unknown)}; known: {', '.join(known)}")
+        rule = cls(**{k: (float(v) if k in ("tolerance", "floor", "factor") else int(v)) for k, v in value.items()})
         if (rule.window < 1 or rule.smoothing < 1 or rule.check_every < 1 or rule.anneal_steps < 0 or rule.tolerance < 0
-                or rule.floor < 0):
+                or rule.floor < 0 or rule.reductions < 0 or rule.min_steps < 0 or not 0 < rule.factor < 1):
             raise ValueError(f"objective.plateau: {value!r}: window, smoothing and check_every must be >= 1, "
-                             "anneal_steps, tolerance and floor >= 0")
+                             "anneal_steps, tolerance, floor, reductions and min_steps >= 0, factor in (0, 1)")
         return rule
 
     @property
@@ -339,11 +352,16 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
     history = []
     descent_cap = max_steps - rule.anneal_steps
     step = 0
-    held = held_on = decrease = stopped_at = snapshot = None
+    held = held_on = decrease = stopped_at = snapshot = stage = since = scale_on = None
 
     while step < descent_cap:
+        before = None
+        if scale_on is not None:  # some sequence descends at a reduced rate: its step is scaled below
+            before = [p.detach().clone() for p in tensors]
         adam_step(opt, prior_name, step_loss, step, history, step % LOG_EVERY == 0, callback)
         step += 1
+        if before is not None:
+            _scale_steps(tensors, before, scale_on)
         if held is None:  # the batch size, known from the first step's objective
             B = int(trace[-1].shape[0])
             bad = [tuple(p.shape) for p in tensors if p.dim() == 0 or p.shape[0] != B]
@@ -354,13 +372,23 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
             decrease = torch.full((B,), float("nan"), dtype=torch.float64)
             stopped_at = torch.full((B,), descent_cap, dtype=torch.long)
             snapshot = [p.detach().clone() for p in tensors]
+            stage = torch.zeros(B, dtype=torch.long)
+            since = torch.zeros(B, dtype=torch.long)  # descent steps since the sequence's rate last changed
+        since += 1
         with torch.no_grad():
             if bool(held.any()):  # the held sequences stay where they stopped
                 for p, snap in zip(tensors, snapshot):
                     p[held_on] = snap[held_on]
         if step >= rule.min_descent and (step % rule.check_every == 0 or step == descent_cap):
             change = rule.decrease(trace)
-            new = ~held & ((change.abs() <= rule.tolerance) | torch.tensor(step == descent_cap))
+            flat = ~held & (change.abs() <= rule.tolerance) & (since >= rule.min_descent)
+            down = flat & (stage < rule.reductions)  # a plateau at a rate with reductions left: reduce it
+            if bool(down.any()):
+                stage[down] += 1
+                since[down] = 0
+                scale_on = (rule.factor ** stage.double()).to(tensors[0].device)
+            last = flat & ~down & torch.tensor(step >= rule.min_steps)
+            new = last | (~held & torch.tensor(step == descent_cap))
             if bool(new.any()):
                 decrease[new] = change[new]
                 stopped_at[new] = step
@@ -373,17 +401,33 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
             if bool(held.all()):
                 break
     descent = step
-    if rule.anneal_steps:
+    if rule.anneal_steps:  # every sequence from its own last rate
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=rule.anneal_steps, eta_min=lr * lr_final_fraction)
         for i in range(rule.anneal_steps):
+            before = None if scale_on is None else [p.detach().clone() for p in tensors]
             adam_step(opt, prior_name, step_loss, step, history, i == rule.anneal_steps - 1 or step % LOG_EVERY == 0,
                       callback)
+            if before is not None:
+                _scale_steps(tensors, before, scale_on)
             sched.step()
             step += 1
-    converged = [bool(abs(v) <= rule.tolerance) for v in decrease.tolist()]
-    return history, {"descent_steps": [int(v) for v in stopped_at.tolist()], "steps": step,
-                     "stopped": "plateau" if descent < descent_cap or all(converged) else "cap",
-                     "plateau_decrease": [round(float(v), 6) for v in decrease.tolist()], "converged": converged}
+    # converged: within the tolerance when it stopped, at its last reduced rate
+    converged = [bool(abs(v) <= rule.tolerance and k >= rule.reductions) for v, k in zip(decrease.tolist(), stage.tolist())]
+    out = {"descent_steps": [int(v) for v in stopped_at.tolist()], "steps": step,
+           "stopped": "plateau" if descent < descent_cap or all(converged) else "cap",
+           "plateau_decrease": [round(float(v), 6) for v in decrease.tolist()], "converged": converged}
+    if rule.reductions:
+        out["reductions"] = [int(k) for k in stage.tolist()]
+    return history, out
+
+
+@torch.no_grad()
+def _scale_steps(tensors: list, before: list, scale: torch.Tensor) -> None:
+    """Scale each sequence's last optimiser step by ``scale`` (B,): its own learning rate (Adam's
+    step does not depend on the gradient's scale, so a per-sequence rate is the scaled step)."""
+    for p, b in zip(tensors, before):
+        s = scale.to(p.dtype).view(-1, *([1] * (p.dim() - 1)))
+        p.copy_(b + s * (p - b))
 
 
 FACING_POINTS = 256  # observed points per frame the hypotheses are scored on

@@ -50,6 +50,9 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
     if points not in grid["points"] or fps not in grid["fps"]:
         raise ValueError(f"fit-check: --points {points} / --fps {fps:g} is not a table1 cell "
                          f"(points {grid['points']}, fps {grid['fps']}); pick one of those")
+    # the grid's own values: the observation's seed reads the cell as written (--fps 5.0 is the cell 5)
+    points = next(v for v in grid["points"] if v == points)
+    fps = next(v for v in grid["fps"] if v == fps)
     spec["grid"] = {"points": [points], "fps": [fps]}
     rule_note = ""
     if start_search is not None:
@@ -99,14 +102,21 @@ MAX_MOVE_MM = 1.0  # the largest move of a cell's MPJPE (mm) a number may show a
 def robustness_specs(spec: dict, profile: dict, base_steps: int) -> dict:
     """The two probes of a base run (table1 ``spec`` restricted to its cells, under ``profile``):
     ``perturbed``, the same rules with the observation moved by PERTURBATION_M
-    (``data.observation_offset_m``); ``longer``, the plateau rule's tolerance set to 0 (the descent
-    never stops early) and the step cap LONGER times ``base_steps``. Returns
-    ``{name: (spec, profile)}``."""
+    (``data.observation_offset_m``); ``longer``, the step cap LONGER times ``base_steps`` and the
+    descent not stopped early: under a rule without reductions (table1 version 6) its tolerance set
+    to 0, so it descends at the constant rate to the cap; under a rule with reductions, the same
+    rule with ``min_steps`` set so that each sequence reduces its rate as usual and then keeps
+    descending at its last rate until the anneal. Returns ``{name: (spec, profile)}``."""
     perturbed = copy.deepcopy(spec)
     perturbed["data"]["observation_offset_m"] = PERTURBATION_M
     longer = copy.deepcopy(spec)
     plateau = dict(longer["objective"].get("plateau") or {})
-    plateau["tolerance"] = 0.0
+    if int(plateau.get("reductions", 0)):
+        from benchmark.protocols.fit_state import PlateauRule
+
+        plateau["min_steps"] = LONGER * int(base_steps) - PlateauRule.from_spec(plateau).anneal_steps
+    else:
+        plateau["tolerance"] = 0.0
     longer["objective"]["plateau"] = plateau
     long_profile = dict(profile, steps=LONGER * int(base_steps))
     return {"perturbed": (perturbed, profile), "longer": (longer, long_profile)}
