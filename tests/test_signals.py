@@ -439,3 +439,31 @@ def test_the_first_worker_starts_with_sigint_still_blocked():
                           timeout=120, env=dict(os.environ, OMP_NUM_THREADS="1"))
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["True", "False"]  # blocked while starting; unblocked again afterwards
+
+
+class _InterruptedInCompiledCode(FakeExecutor):
+    """The third unit meets SIGTERM inside numba's compiled code: numba hands the handler's
+    exception back wrapped in a SystemError (seen on a real sls run: the run went on to the next unit)."""
+
+    def __init__(self, interrupt: KeyboardInterrupt):
+        super().__init__()
+        self.interrupt = interrupt
+
+    def __call__(self, unit):
+        if len(self.calls) == 2:
+            self.calls.append(unit.unit_id)
+            try:
+                raise self.interrupt
+            except KeyboardInterrupt as exc:
+                raise SystemError("CPUDispatcher(<function _query_cached>) returned a result with an exception set") from exc
+        return super().__call__(unit)
+
+
+@pytest.mark.parametrize("interrupt", [Terminated(), KeyboardInterrupt()], ids=["SIGTERM", "Ctrl-C"])
+def test_an_interrupt_inside_compiled_code_stops_the_serial_run(tmp_path, interrupt):
+    units = plan()
+    execute = _InterruptedInCompiledCode(interrupt)
+    with pytest.raises(type(interrupt)) as caught:
+        runner.run_units(units, execute, tmp_path, progress=False)
+    assert len(execute.calls) == 3 and type(caught.value) is type(interrupt)  # stopped there, not failed and passed over
+    assert len(list((tmp_path / "units").glob("*.json"))) == 2

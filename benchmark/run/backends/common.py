@@ -113,6 +113,20 @@ def set_threads(threads: int) -> None:
         torch.set_num_threads(threads)
 
 
+def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt (Ctrl-C, or SIGTERM's :class:`~benchmark.core.interrupts.Terminated`)
+    that ``exc`` was raised from, if any: a signal handler's exception raised while numba's compiled
+    code runs comes out as ``SystemError: CPUDispatcher(...) returned a result with an exception
+    set``, its cause the interrupt, and must stop the run rather than fail one unit."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def serial_backend(units: Sequence, execute, on_done) -> None:
     """Run units in this process, one after another (``--jobs 1``), each with one torch thread as
     in a worker process, so that ``--jobs 1``, ``--jobs N`` and Ray store the same bits. The
@@ -126,6 +140,9 @@ def serial_backend(units: Sequence, execute, on_done) -> None:
             try:
                 result = execute(unit)
             except Exception as exc:  # one failing unit must not take the others down
+                stop = interrupt_behind(exc)
+                if stop is not None:  # Ctrl-C or SIGTERM inside compiled code: numba wraps it in a SystemError
+                    raise stop from None
                 on_done(unit, None, exc)
             else:
                 on_done(unit, result, None)
