@@ -38,9 +38,12 @@ def handmade_motion(seconds=1.7, period=PERIOD, fps=50.0, yaw=1.0, source="hand:
     return Motion(poses=poses.float(), trans=trans.float(), timestamps=t, source=source, meta={"subject": "s1"})
 
 
-def tiny_spec(sweeps=None):
+def tiny_spec(sweeps=None, start_search="none"):
+    """The sls spec on tiny scans; without the start search (its tests below ask for it: it costs
+    seconds per fit on 100 anchors, and the other tests are about the rest of the fit)."""
     spec = copy.deepcopy(load_table_spec("sls"))
     spec["data"]["points_per_scan"] = 300
+    spec["objective"]["start_search"] = start_search
     if sweeps is not None:
         spec["grid"] = {"sweep": list(sweeps)}
     return spec
@@ -314,7 +317,7 @@ def test_no_prior_starts_from_the_aligned_prior_free_start_and_stops_at_its_plat
     from benchmark.run.registry import make_adapter
 
     ids = sorted(cycle_motions)[:1]
-    spec = tiny_spec()
+    spec = tiny_spec(start_search=load_table_spec("sls")["objective"]["start_search"])
     data = source.unit_data(ids)
     obs = sls_data.observe(data, spec, "p0", 0, ids)  # landmarks only: cheap
     rule = sls_fit.PlateauRule(window=20, tolerance=0.005, smoothing=5, check_every=5, anneal_steps=10, floor=1.0)
@@ -343,7 +346,7 @@ def test_a_window_prior_starts_from_the_encoded_prior_free_start(source, cycle_m
     from benchmark.run.registry import make_adapter
 
     ids = sorted(cycle_motions)[:1]
-    spec = tiny_spec()
+    spec = tiny_spec(start_search=load_table_spec("sls")["objective"]["start_search"])
     data = source.unit_data(ids)
     obs = sls_data.observe(data, spec, "p0", 0, ids)
     state, info = sls_fit.fit_sls(make_adapter("hmvae"), anny_body, obs, data.anchor_t, 2, spec["objective"],
