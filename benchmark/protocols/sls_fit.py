@@ -13,8 +13,7 @@ from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.protocols.facing import facing_search
 from benchmark.protocols.fit_state import (FitState, PlateauRule, apply_free_rigid, body_parameters, init_state, optimise,
                                            optimise_to_plateau, parameter_groups)
-from benchmark.protocols.start_search import (START_SEARCH_RULES, encoded_start, is_prior_free, limb_start_search,
-                                              prior_free_start)
+from benchmark.protocols.start_search import START_SEARCH_RULES, is_prior_free, prior_free_start, searched_start
 from benchmark.protocols.sls_data import Observation
 from priors.base import AnchorDecoder, FitBatch, PriorAdapter
 
@@ -133,10 +132,7 @@ def sls_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, obj
         state, log = prior_free_start(body, batch, generator, device, lr, lam, facing="aligned")
         state.adapter = adapter
         return state, log
-    state, log = limb_start_search(adapter, body, batch, state, lr, lam)
-    if rule == "observation" and "start_choice_counts" not in log:
-        state, log = encoded_start(adapter, body, batch, state, generator, device, lr, lam, facing="aligned")
-    return state, log
+    return searched_start(adapter, body, batch, state, rule, generator, device, lr, lam, facing="aligned")
 
 
 def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tensor, steps: int, objective: dict,

@@ -39,21 +39,6 @@ LIMB_START_STAGES = (
 )
 
 
-# A hypothesis wins a frame only when its score is lower than every earlier hypothesis's by more than
-# this fraction; 0 (versions 4-6 of table1, 4 of sls): the lowest score, the first of exact ties.
-START_TIE_MARGIN = 0.0
-
-
-def first_within(scores: torch.Tensor, dim: int, margin: float) -> torch.Tensor:
-    """The index along ``dim`` of the first entry within ``margin`` (relative) of the lowest: with
-    ``margin`` 0, ``argmin`` (the first of exact ties)."""
-    low = scores.min(dim, keepdim=True).values
-    near = scores <= low + margin * low.abs()
-    order = torch.arange(scores.shape[dim], device=scores.device).view([-1 if d == dim % scores.dim() else 1
-                                                                        for d in range(scores.dim())])
-    return torch.where(near, order, scores.shape[dim]).min(dim).values
-
-
 def supports_start_search(adapter: PriorAdapter) -> bool:
     """Whether ``limb_start_search`` applies: a per-frame prior (one latent set per observed frame)
     that can express a given pose in its latents (``encode_motion``: exact for no-prior, the
@@ -147,7 +132,7 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
     optimise(adapter.name, hyp.parameters(), all_steps, lr, 1.0, loss_of)
     with torch.no_grad():
         scores = frame_terms().view(B, K, n)
-    best = first_within(scores, 1, START_TIE_MARGIN)  # (B, n)
+    best = scores.argmin(1)  # (B, n)
 
     def per_frame(x):
         if x is None:
@@ -159,7 +144,7 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
         idx = best.view(B, 1, n, *([1] * (y.dim() - 3))).expand(B, 1, n, *y.shape[3:])
         return y.gather(1, idx)[:, 0].clone().requires_grad_(True)
 
-    whole = first_within(scores.mean(2), 1, START_TIE_MARGIN)  # (B,)
+    whole = scores.mean(2).argmin(1)  # (B,)
 
     def per_sequence(x):
         if x is None:
@@ -237,6 +222,19 @@ def _leaf_copy(state: FitState, **changes) -> FitState:
     fields = {"latents": {k: leaf(v) for k, v in state.latents.items()}, "shape_param": leaf(state.shape_param),
               **{name: leaf(getattr(state, name)) for name in ("root", "trans", "heading", "offset")}}
     return dataclasses.replace(state, **{**fields, **changes})
+
+
+def searched_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, rule: str,
+                   generator: torch.Generator, device, lr: float, lambda_prior: float,
+                   facing: str = "observation") -> tuple[FitState, dict]:
+    """The start search of ``objective.start_search`` ``rule`` (``limbs`` or ``observation``) from
+    ``state``: :func:`limb_start_search` for the per-frame priors; under ``observation``, every other
+    prior with a motion encoder starts from the prior-free start (``facing`` as in
+    :func:`prior_free_start`), encoded (:func:`encoded_start`)."""
+    state, log = limb_start_search(adapter, body, batch, state, lr, lambda_prior)
+    if rule == "observation" and "start_choice_counts" not in log:
+        state, log = encoded_start(adapter, body, batch, state, generator, device, lr, lambda_prior, facing=facing)
+    return state, log
 
 
 def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, generator: torch.Generator, device,
