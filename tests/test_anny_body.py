@@ -89,3 +89,16 @@ def test_weights_and_landmarks(anny_body):
     assert torch.allclose(w.sum(1), torch.ones(w.shape[0]), atol=1e-5)
     assert anny_body.landmark_indices.shape == (16,)
     assert len(set(anny_body.landmark_indices.tolist())) == 16
+
+
+def test_a_load_in_another_dtype_leaves_the_cached_body_alone(anny_body):
+    """load_anny_body caches one body per (device, dtype); nn.Module.to moves a module in place,
+    so the float64 load must be a copy, not the float32 body every other caller holds, moved."""
+    from benchmark.body.anny_body import load_anny_body
+
+    base = load_anny_body("cpu")
+    wide = load_anny_body("cpu", torch.float64)
+    assert wide is not base and load_anny_body("cpu") is base
+    assert {t.dtype for t in base.buffers() if t.is_floating_point()} == {torch.float32}
+    assert {t.dtype for t in wide.buffers() if t.is_floating_point()} == {torch.float64}
+    assert base(_identity(), torch.zeros(1, 1, 3)).vertices.dtype == torch.float32

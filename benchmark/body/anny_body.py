@@ -27,6 +27,7 @@ vertex. This is exactly Anny's own linear blend skinning for the equivalent Anny
 
 from __future__ import annotations
 
+import copy
 import logging
 import warnings
 from pathlib import Path
@@ -317,14 +318,17 @@ _CACHED: dict = {}
 
 
 def load_anny_body(device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32) -> AnnyBody:
-    """The embedded body, built once per process (Anny's first build caches under ANNY_CACHE_DIR)."""
+    """The embedded body, built once per process (Anny's first build caches under ANNY_CACHE_DIR).
+
+    One body per (device, dtype), each its own copy: ``nn.Module.to`` moves a module in place, so a
+    load on another device or dtype must not move the cached float32 CPU body under its other users."""
     key = (str(device), dtype)
     if key not in _CACHED:
         if "cpu" not in _CACHED:
             log.info("building the embedded Anny body (first use builds Anny's cache, ~1 min)")
             _CACHED["cpu"] = AnnyBody(dtype=torch.float32)
         body = _CACHED["cpu"]
-        _CACHED[key] = body.to(device=device, dtype=dtype) if key != ("cpu", torch.float32) else body
+        _CACHED[key] = copy.deepcopy(body).to(device=device, dtype=dtype) if key != ("cpu", torch.float32) else body
     return _CACHED[key]
 
 
