@@ -420,9 +420,9 @@ def test_ray_init_does_not_keep_the_sigterm_handler_of_the_cli():
 
 _STARTS_A_WORKER_BLOCKED = """
 import multiprocessing as mp, signal, time
-from benchmark.run.backends.local import _sigint_blocked
+from benchmark.run.backends.local import sigint_blocked
 ctx = mp.get_context("spawn")
-with _sigint_blocked():
+with sigint_blocked():
     proc = ctx.Process(target=time.sleep, args=(0,))
     proc.start()  # the first start in this interpreter: it also starts multiprocessing's resource tracker
     print(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, []))
@@ -467,3 +467,26 @@ def test_an_interrupt_inside_compiled_code_stops_the_serial_run(tmp_path, interr
         runner.run_units(units, execute, tmp_path, progress=False)
     assert len(execute.calls) == 3 and type(caught.value) is type(interrupt)  # stopped there, not failed and passed over
     assert len(list((tmp_path / "units").glob("*.json"))) == 2
+
+
+_REPORT_POOL = """
+import signal
+from benchmark.report.cells import run_in_pool
+out = run_in_pool(signal.getsignal, [(signal.SIGINT,)] * 2, workers=2)
+print([r is signal.SIG_IGN for r, _ in out], [e for _, e in out])
+print(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, []))
+print(run_in_pool(int, [("x",)] * 2, workers=2)[0][1])
+"""
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="no signal masks on this platform")
+def test_the_report_animation_workers_ignore_ctrl_c():
+    """The report's animation pool: its workers ignore Ctrl-C (the driver stops the pool; before,
+    a Ctrl-C printed a traceback from every worker), the driver's mask is put back, and a job's
+    error comes back as its text."""
+    done = subprocess.run([sys.executable, "-c", _REPORT_POOL], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[:2] == ["[True, True] [None, None]", "False"]
+    assert lines[2].startswith("ValueError: invalid literal for int()")

@@ -128,9 +128,46 @@ def render_animation(npz: str, index: int, out: str, title: str, body_spec: str,
 
 
 def _init_worker() -> None:
+    """A worker ignores Ctrl-C (the driver stops the pool): it was started with SIGINT blocked
+    (:func:`benchmark.run.backends.local.sigint_blocked`), so none arrived before this point."""
+    import signal
+
     import torch
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # discards a Ctrl-C pending since the start
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     torch.set_num_threads(1)
+
+
+def run_in_pool(fn, payloads: list, workers: int) -> list:
+    """``fn(*payload)`` for every payload in up to ``workers`` spawned processes (one torch thread
+    each); returns ``(result, None)`` or ``(None, "Type: message")`` per payload, in order.
+
+    The workers start (at the submits) with SIGINT blocked and ignore it (:func:`_init_worker`): a
+    Ctrl-C reaches only this process, which drops the payloads not started and lets the running
+    ones end, instead of a traceback from every half-started worker."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from benchmark.run.backends.local import sigint_blocked
+
+    with sigint_blocked():
+        pool = ProcessPoolExecutor(max_workers=min(workers, len(payloads)), mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_init_worker)
+        futures = [pool.submit(fn, *payload) for payload in payloads]
+    results = []
+    try:
+        for fut in futures:
+            try:
+                results.append((fut.result(), None))
+            except Exception as exc:
+                results.append((None, f"{type(exc).__name__}: {exc}"))
+    except BaseException:  # Ctrl-C
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
+    return results
 
 
 def run_animation_jobs(jobs: list, workers: int = 1) -> None:
@@ -138,25 +175,15 @@ def run_animation_jobs(jobs: list, workers: int = 1) -> None:
     leaves its cell without that animation and says why on the page."""
     if not jobs:
         return
-    results = {}
     if workers <= 1 or len(jobs) == 1:
+        results = {}
         for k, job in enumerate(jobs):
             try:
                 results[k] = (render_animation(*job.payload()), None)
             except Exception as exc:  # one bad unit must not take the report down
                 results[k] = (None, f"{type(exc).__name__}: {exc}")
     else:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
-                                 initializer=_init_worker) as pool:
-            futures = {k: pool.submit(render_animation, *job.payload()) for k, job in enumerate(jobs)}
-            for k, fut in futures.items():
-                try:
-                    results[k] = (fut.result(), None)
-                except Exception as exc:
-                    results[k] = (None, f"{type(exc).__name__}: {exc}")
+        results = dict(enumerate(run_in_pool(render_animation, [job.payload() for job in jobs], workers)))
     for k, job in enumerate(jobs):
         v2v, error = results[k]
         cr = job.cell_report

@@ -146,7 +146,7 @@ def _write_private(path: str, data: bytes) -> None:
 
 
 @contextmanager
-def _sigint_blocked():
+def sigint_blocked():
     """SIGINT blocked in this thread while it starts a worker process: the worker inherits the
     blocked mask and unblocks SIGINT only once it ignores it (:func:`_process_worker`), so that a
     Ctrl-C at that moment cannot print a KeyboardInterrupt traceback from a half-started worker.
@@ -218,7 +218,7 @@ class ProcessBackend:
             driver = os.getpid() if self.start_method in ("spawn", "fork") else None  # the worker's parent
             proc = ctx.Process(target=_process_worker, args=(child, payload_path, self.threads, driver),
                                name="benchmark-unit-worker", daemon=True)
-            with _sigint_blocked():
+            with sigint_blocked():
                 proc.start()
             child.close()
             workers.append({"proc": proc, "conn": parent, "unit": None, "ready": False, "keys": set()})
