@@ -1,0 +1,39 @@
+"""``encoder-check``: encode-decode error of each prior's encoder on clean and joint-noised motion
+(:mod:`benchmark.tools.encoder_check`)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_command(sub) -> None:
+    p = sub.add_parser("encoder-check", help="encode -> decode error (MPJPE mm) of each prior's encoder on the quick "
+                                             "test windows, clean and with per-frame joint noise (the completion "
+                                             "start's condition)",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--prior", action="append", default=None,
+                   help="prior name (repeatable); default: table1's default priors")
+    p.add_argument("--noise-deg", type=float, action="append", default=None,
+                   help="per-axis standard deviation (degrees) of the random turn of every body joint, per frame "
+                        "(repeatable; default 0, 2, 5)")
+    p.add_argument("--window", type=float, default=4.0, help="window length, seconds (table1's: 4)")
+    p.add_argument("--sequences", type=int, default=8, help="test sequences (the quick profile's selection)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default=None, help="cpu | cuda (default: cuda when available)")
+
+    def run(args) -> int:
+        from benchmark.body import get_body
+        from benchmark.commands.common import resolve_device
+        from benchmark.run.catalog import load_table_spec
+        from benchmark.tools.encoder_check import NOISE_DEG, check_encoders, format_rows
+
+        device = resolve_device(args.device)
+        priors = args.prior or list(load_table_spec("table1")["default_priors"])
+        rows = check_encoders(priors, get_body("anny", device=device), sequences=args.sequences, window_s=args.window,
+                              noise_deg=tuple(args.noise_deg or NOISE_DEG), seed=args.seed, device=device)
+        print(f"encode -> decode MPJPE (mm, 22 joints, no alignment) over {args.sequences} test windows of {args.window:g} s; "
+              "noise: every body joint turned per frame (root and translation clean)")
+        print(format_rows(rows))
+        return 0
+
+    p.set_defaults(func=run)
