@@ -25,8 +25,9 @@ def add_command(sub) -> None:
         from benchmark.body import get_body
         from benchmark.commands.common import resolve_device
         from benchmark.run.catalog import load_table_spec
-        from benchmark.tools.encoder_check import NOISE_DEG, check_encoders, format_rows
+        from benchmark.tools.encoder_check import NOISE_DEG, check_encoders, check_options, format_rows
 
+        check_options(args.sequences, args.window, tuple(args.noise_deg or NOISE_DEG))  # before any work
         device = resolve_device(args.device)
         priors = args.prior or list(load_table_spec("table1")["default_priors"])
         rows = check_encoders(priors, get_body("anny", device=device), sequences=args.sequences, window_s=args.window,

@@ -43,6 +43,17 @@ def joint_noise(rotations: torch.Tensor, noise_deg: float, generator: torch.Gene
     return torch.cat([rotations[:, :, :1], turn @ rotations[:, :, 1:]], dim=2)
 
 
+def check_options(sequences: int, window_s: float, noise_deg) -> None:
+    """ValueError naming the option when one is out of range."""
+    if not (math.isfinite(window_s) and window_s > 0):
+        raise ValueError(f"encoder-check: --window must be > 0 seconds, got {window_s}")
+    if sequences < 1:
+        raise ValueError(f"encoder-check: --sequences must be >= 1, got {sequences}")
+    bad = [n for n in noise_deg if not (math.isfinite(n) and n >= 0)]
+    if bad:
+        raise ValueError(f"encoder-check: --noise-deg must be finite and >= 0, got {bad}")
+
+
 def check_encoders(priors: list[str], body, sequences: int = 8, window_s: float = 4.0,
                    noise_deg=NOISE_DEG, seed: int = 0, device: str = "cpu") -> list[dict]:
     """One row per (prior, noise): ``{"prior", "noise_deg", "input_mm", "decoded_mm", "worst_mm",
@@ -55,13 +66,8 @@ def check_encoders(priors: list[str], body, sequences: int = 8, window_s: float 
     from benchmark.run.registry import make_adapter
     from priors.base import has_motion_encoder
 
-    if window_s <= 0:
-        raise ValueError(f"encoder-check: --window must be > 0 seconds, got {window_s}")
-    if sequences < 1:
-        raise ValueError(f"encoder-check: --sequences must be >= 1, got {sequences}")
-    bad = [n for n in noise_deg if not (math.isfinite(n) and n >= 0)]
-    if bad:
-        raise ValueError(f"encoder-check: --noise-deg must be finite and >= 0, got {bad}")
+    check_options(sequences, window_s, noise_deg)
+    adapters = {name: make_adapter(name, device=device) for name in priors}  # an unknown name fails before any data
     spec = copy.deepcopy(load_table_spec("reconstruction"))
     motions = load_table_motions(spec, None, body, longest_window_s=window_s)
     ids = select_sequences(motions, sequences)
@@ -76,8 +82,7 @@ def check_encoders(priors: list[str], body, sequences: int = 8, window_s: float 
         return per
 
     rows = []
-    for name in priors:
-        adapter = make_adapter(name, device=device)
+    for name, adapter in adapters.items():
         if not has_motion_encoder(adapter):
             rows.append({"prior": name, "na": "no encoder (has_encoder is False or encode_motion is missing)"})
             continue
