@@ -94,11 +94,14 @@ def test_weights_and_landmarks(anny_body):
 def test_a_load_in_another_dtype_leaves_the_cached_body_alone(anny_body):
     """load_anny_body caches one body per (device, dtype); nn.Module.to moves a module in place,
     so the float64 load must be a copy, not the float32 body every other caller holds, moved."""
-    from benchmark.body.anny_body import load_anny_body
+    from benchmark.body.anny_body import _CACHED, load_anny_body
 
     base = load_anny_body("cpu")
-    wide = load_anny_body("cpu", torch.float64)
-    assert wide is not base and load_anny_body("cpu") is base
-    assert {t.dtype for t in base.buffers() if t.is_floating_point()} == {torch.float32}
-    assert {t.dtype for t in wide.buffers() if t.is_floating_point()} == {torch.float64}
-    assert base(_identity(), torch.zeros(1, 1, 3)).vertices.dtype == torch.float32
+    try:
+        wide = load_anny_body("cpu", torch.float64)
+        assert wide is not base and load_anny_body("cpu") is base
+        assert {t.dtype for t in base.buffers() if t.is_floating_point()} == {torch.float32}
+        assert {t.dtype for t in wide.buffers() if t.is_floating_point()} == {torch.float64}
+        assert base(_identity(), torch.zeros(1, 1, 3)).vertices.dtype == torch.float32
+    finally:
+        _CACHED.pop(("cpu", torch.float64), None)  # the copy is not kept for the rest of the session
