@@ -33,8 +33,7 @@ from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.facing import FACING_RULES, facing_search, observed_facing
 from benchmark.protocols.fit_state import (FitState, PlateauRule, body_parameters, init_state, optimise,
                                            optimise_to_plateau, parameter_groups)
-from benchmark.protocols.start_search import (START_SEARCH_RULES, encoded_start, is_prior_free, limb_start_search,
-                                              prior_free_start)
+from benchmark.protocols.start_search import START_SEARCH_RULES, is_prior_free, prior_free_start, searched_start
 from priors.base import FitBatch, PriorAdapter
 
 log = logging.getLogger(__name__)
@@ -99,9 +98,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     facing_log["facing_s"] = time.perf_counter() - t_facing
     if start_search in ("limbs", "observation") and not own_start:
         t_search = time.perf_counter()
-        state, search_log = limb_start_search(adapter, body, batch, state, lr, lambda_prior)
-        if start_search == "observation" and "start_choice_counts" not in search_log:
-            state, search_log = encoded_start(adapter, body, batch, state, generator, device, lr, lambda_prior)
+        state, search_log = searched_start(adapter, body, batch, state, start_search, generator, device, lr,
+                                           lambda_prior)
         facing_log.update(search_log, start_search_s=time.perf_counter() - t_search)
 
     def step_loss(step):

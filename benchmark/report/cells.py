@@ -140,6 +140,15 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
+def _outcome(call, *args) -> tuple:
+    """``(call(*args), None)``, or ``(None, "Type: message")`` when it raises an Exception (one bad
+    job must not take the report down)."""
+    try:
+        return call(*args), None
+    except Exception as exc:
+        return None, f"{type(exc).__name__}: {exc}"
+
+
 def run_in_pool(fn, payloads: list, workers: int) -> list:
     """``fn(*payload)`` for every payload in up to ``workers`` spawned processes (one torch thread
     each); returns ``(result, None)`` or ``(None, "Type: message")`` per payload, in order.
@@ -156,13 +165,8 @@ def run_in_pool(fn, payloads: list, workers: int) -> list:
         pool = ProcessPoolExecutor(max_workers=min(workers, len(payloads)), mp_context=multiprocessing.get_context("spawn"),
                                    initializer=_init_worker)
         futures = [pool.submit(fn, *payload) for payload in payloads]
-    results = []
     try:
-        for fut in futures:
-            try:
-                results.append((fut.result(), None))
-            except Exception as exc:
-                results.append((None, f"{type(exc).__name__}: {exc}"))
+        results = [_outcome(fut.result) for fut in futures]
     except BaseException:  # Ctrl-C
         pool.shutdown(wait=False, cancel_futures=True)
         raise
@@ -176,16 +180,10 @@ def run_animation_jobs(jobs: list, workers: int = 1) -> None:
     if not jobs:
         return
     if workers <= 1 or len(jobs) == 1:
-        results = {}
-        for k, job in enumerate(jobs):
-            try:
-                results[k] = (render_animation(*job.payload()), None)
-            except Exception as exc:  # one bad unit must not take the report down
-                results[k] = (None, f"{type(exc).__name__}: {exc}")
+        results = [_outcome(render_animation, *job.payload()) for job in jobs]
     else:
-        results = dict(enumerate(run_in_pool(render_animation, [job.payload() for job in jobs], workers)))
-    for k, job in enumerate(jobs):
-        v2v, error = results[k]
+        results = run_in_pool(render_animation, [job.payload() for job in jobs], workers)
+    for job, (v2v, error) in zip(jobs, results):
         cr = job.cell_report
         if error is None:
             cr.diag[job.sequence_id].v2v_mm = v2v

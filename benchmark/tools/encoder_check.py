@@ -78,17 +78,20 @@ def check_encoders(priors: list[str], body, sequences: int = 8, window_s: float 
     def mean_mm(rot, trans):
         with torch.no_grad():
             j = joints_of(body, clean.shapes, rot, trans)
-        per = [float(v) / T * 1000.0 for v in mpjpe(j, clean.joints, reduction="sum")]
-        return per
+        return [float(v) / T * 1000.0 for v in mpjpe(j, clean.joints, reduction="sum")]
 
+    # the noisy inputs and their own error: the same for every prior
+    inputs = []
+    for noise in noise_deg:
+        rot = joint_noise(clean.rotations, float(noise), torch.Generator().manual_seed(seed))
+        given = mean_mm(rot, clean.trans)
+        inputs.append((float(noise), rot, sum(given) / len(given)))
     rows = []
     for name, adapter in adapters.items():
         if not has_motion_encoder(adapter):
             rows.append({"prior": name, "na": "no encoder (has_encoder is False or encode_motion is missing)"})
             continue
-        for noise in noise_deg:
-            gen = torch.Generator().manual_seed(seed)
-            rot = joint_noise(clean.rotations, float(noise), gen)
+        for noise, rot, input_mm in inputs:
             targets = MotionTargets(timestamps=ts, shapes=clean.shapes, window_s=window_s, joints=clean.joints,
                                     init_rotations=rot, init_trans=clean.trans)
             with torch.no_grad():
@@ -97,8 +100,7 @@ def check_encoders(priors: list[str], body, sequences: int = 8, window_s: float 
                                           latents=latents)
                 out_rot, out_trans = decode_parameters(state, ts)
             decoded = mean_mm(out_rot, out_trans)
-            given = mean_mm(rot, clean.trans)
-            rows.append({"prior": name, "noise_deg": float(noise), "input_mm": sum(given) / len(given),
+            rows.append({"prior": name, "noise_deg": noise, "input_mm": input_mm,
                          "decoded_mm": sum(decoded) / len(decoded), "worst_mm": max(decoded),
                          "per_sequence_mm": decoded})
     return rows
