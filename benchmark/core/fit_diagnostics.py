@@ -13,8 +13,8 @@ Every completion-type unit (table1, sls, captured scans) stores, per sequence, i
 - ``final_data_mm``: the data term (the objective without the prior term) at the last step;
 - ``data_decrease_last10``: the data term's relative decrease over the last
   ``CONVERGENCE_WINDOW`` of the steps, ``(d[s0] - d[last]) / d[s0]``;
-- ``converged``: protocol v6 (``objective.step_rule: plateau``): the objective's relative change
-  over the plateau rule's window, at the full constant learning rate, was within its tolerance
+- ``converged``: protocol v6-v7 (``objective.step_rule: plateau``): the objective's relative change
+  over the plateau rule's window, at a constant rate (v6: the full one; v7: the last reduced one), was within its tolerance
   when the descent stopped (``plateau_decrease``; ``steps``: the steps the fit took, anneal
   included; :class:`benchmark.protocols.fit_state.PlateauRule`); versions 1-5:
   ``data_decrease_last10 <= CONVERGED_MAX_DECREASE`` (a flag a fit whose cosine schedule has
