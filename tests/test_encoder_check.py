@@ -33,3 +33,36 @@ def test_a_per_frame_encoder_projects_noise_and_a_prior_without_encoder_is_na(an
 def test_bad_options_are_named(anny_body, kw, message):
     with pytest.raises(ValueError, match=message):
         check_encoders(["vposer-slerp"], anny_body, **kw)
+
+
+def test_weights_build_the_adapter_from_the_given_checkpoint(anny_body, monkeypatch):
+    from benchmark.run import registry
+    from priors.vposer.checkpoint import DEFAULT_WEIGHTS
+
+    built = []
+    real = registry.make_adapter
+
+    def spy(name, size="embedded", weights=None, device="cpu"):
+        built.append((name, size, weights))
+        return real(name, size=size, weights=weights, device=device)
+
+    monkeypatch.setattr(registry, "make_adapter", spy)
+    kw = dict(sequences=1, window_s=1.0, noise_deg=(0.0,))
+    given = check_encoders(["vposer-slerp"], anny_body, weights={"vposer-slerp": str(DEFAULT_WEIGHTS)}, **kw)
+    plain = check_encoders(["vposer-slerp"], anny_body, **kw)
+    assert built == [("vposer-slerp", "embedded", str(DEFAULT_WEIGHTS)), ("vposer-slerp", "embedded", None)]
+    assert given[0]["decoded_mm"] == plain[0]["decoded_mm"]  # the embedded file, named: the same encoder
+    with pytest.raises(ValueError, match="not checked"):
+        check_encoders(["vposer-slerp"], anny_body, weights={"hmvae": str(DEFAULT_WEIGHTS)}, **kw)
+
+
+def test_cli_weights_name_a_missing_file_before_any_work(tmp_path, capsys):
+    from benchmark.cli import main
+
+    missing = tmp_path / "nope.pt"
+    for argv, message in ((["--weights", f"motion-dvae={missing}"], "nope.pt: no such file"),
+                          (["--weights", "motion-dvae"], "must look like NAME=VALUE"),
+                          (["--weights", f"hmvae={missing}"], "not checked")):
+        assert main(["encoder-check", "--prior", "motion-dvae", *argv]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "MPJPE" not in err, err

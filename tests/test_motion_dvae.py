@@ -381,6 +381,46 @@ def test_encoder_only_training_keeps_the_generative_model(tmp_path):
                           train_generative=False)
 
 
+def test_encoder_input_noise_trains_the_encoder_on_noisy_copies(tmp_path):
+    from priors.motion_dvae.train import body_joint_noise
+
+    windows = smooth_windows(16, 8, seed=3)
+    pos = canonical_poses(windows)
+    noisy = body_joint_noise(pos, (0.05, 0.05), torch.Generator().manual_seed(0))
+    assert torch.equal(noisy[..., :6], pos[..., :6])  # translation and root as they were: the same canonical frame
+    assert 0.03 < float((noisy[..., 6:] - pos[..., 6:]).std()) < 0.07
+    assert torch.equal(body_joint_noise(pos, (0.0, 0.0)), pos)
+    # the loss reads the encoder's input from encoder_states; given the clean states, it is the clean loss
+    torch.manual_seed(1)
+    m = MotionDVAE(**dict(TINY, feedback=True)).eval()
+    states = pose_to_state(pos[:2])
+    pts = body_points(*state_to_motion(states), REST)
+    with torch.no_grad():
+        torch.manual_seed(2)
+        plain = m.dvae_loss(states, pts, beta=1.0)
+        torch.manual_seed(2)
+        same = m.dvae_loss(states, pts, beta=1.0, encoder_states=states.clone())
+        torch.manual_seed(2)
+        other = m.dvae_loss(states, pts, beta=1.0, encoder_states=pose_to_state(noisy[:2]))
+    assert torch.equal(plain["loss"], same["loss"]) and not torch.equal(plain["loss"], other["loss"])
+
+    base, _ = train_motion_dvae(None, steps=1, denoise_steps=1, config=TINY, batch_size=8, windows=windows,
+                                rest_joints=REST, log_every=10)
+    path = training.save_checkpoint(tmp_path / "motion_dvae.pt", base.state_dict(), base.config)
+    kw = dict(denoise_steps=0, config=TINY, batch_size=8, windows=windows, rest_joints=REST, log_every=10,
+              init_weights=path, init_denoise=True, train_generative=False, lr=1e-2)
+    model, record = train_motion_dvae(None, steps=2, encoder_input_noise=(0.0, 0.1), **kw)
+    assert record["phase_dvae"]["encoder_input_noise_rad"] == [0.0, 0.1] and record["phase_dvae"]["trained"] == ["encoder"]
+    before, after = base.state_dict(), model.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before if not k.startswith("encoder."))
+    assert any(not torch.equal(before[k], after[k]) for k in before if k.startswith("encoder."))
+    with pytest.raises(ValueError, match="encoder-only"):
+        train_motion_dvae(None, steps=1, denoise_steps=0, config=TINY, windows=windows, rest_joints=REST,
+                          encoder_input_noise=(0.0, 0.1))
+    with pytest.raises(ValueError, match="0 <= lo <= hi"):
+        train_motion_dvae(None, steps=1, **dict(kw, encoder_input_noise=(0.2, 0.1)))
+
+
 # -- the residual input of the clean encoder --------------------------------------------------
 def test_residual_encoder_starts_as_the_encoder_without_it(tmp_path):
     torch.manual_seed(0)

@@ -1,4 +1,4 @@
-"""What several commands share: the ``--device`` check."""
+"""What several commands share: the ``--device`` check, ``NAME=VALUE`` options."""
 
 from __future__ import annotations
 
@@ -24,3 +24,17 @@ def resolve_device(name: str | None) -> str:
             raise ValueError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s) "
                              f"(cuda:0..cuda:{torch.cuda.device_count() - 1})")
     return name
+
+
+def parse_pairs(items, what: str) -> dict:
+    """``["NAME=VALUE", ...]`` (a repeatable option ``what``) -> {NAME: VALUE}; a malformed or
+    repeated NAME is an error naming the option."""
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key or not value:
+            raise ValueError(f"{what} must look like NAME=VALUE, got {item!r}")
+        if key in out:
+            raise ValueError(f"{what}: {key!r} is given twice ({key}={out[key]} and {item}); give each NAME once")
+        out[key] = value
+    return out

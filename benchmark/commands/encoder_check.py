@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def add_command(sub) -> None:
@@ -19,19 +20,31 @@ def add_command(sub) -> None:
     p.add_argument("--window", type=float, default=4.0, help="window length, seconds (table1's: 4)")
     p.add_argument("--sequences", type=int, default=8, help="test sequences (the quick profile's selection)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--size", choices=["embedded", "paper"], default="embedded", help="prior size; paper needs --weights")
+    p.add_argument("--weights", action="append", metavar="PRIOR=PATH",
+                   help="a checkpoint for a prior (repeatable): official weights, or embedded-size ones you trained")
     p.add_argument("--device", default=None, help="cpu | cuda (default: cuda when available)")
 
     def run(args) -> int:
         from benchmark.body import get_body
-        from benchmark.commands.common import resolve_device
+        from benchmark.commands.common import parse_pairs, resolve_device
         from benchmark.run.catalog import load_table_spec
         from benchmark.tools.encoder_check import NOISE_DEG, check_encoders, check_options, format_rows
 
         check_options(args.sequences, args.window, tuple(args.noise_deg or NOISE_DEG))  # before any work
-        device = resolve_device(args.device)
         priors = args.prior or list(load_table_spec("table1")["default_priors"])
+        weights = parse_pairs(args.weights, "--weights")
+        unknown = sorted(set(weights) - set(priors))
+        if unknown:
+            raise ValueError(f"--weights given for prior(s) {unknown} that are not checked ({', '.join(priors)}); "
+                             "add them with --prior NAME or drop those --weights")
+        for name, path in weights.items():
+            if not Path(path).expanduser().is_file():
+                raise FileNotFoundError(f"--weights {name}={path}: no such file; give the checkpoint's path")
+        device = resolve_device(args.device)
         rows = check_encoders(priors, get_body("anny", device=device), sequences=args.sequences, window_s=args.window,
-                              noise_deg=tuple(args.noise_deg or NOISE_DEG), seed=args.seed, device=device)
+                              noise_deg=tuple(args.noise_deg or NOISE_DEG), seed=args.seed, device=device,
+                              size=args.size, weights=weights)
         print(f"encode -> decode MPJPE (mm, 22 joints, no alignment) over {args.sequences} test windows of {args.window:g} s; "
               "noise: every body joint turned per frame (root and translation clean)")
         print(format_rows(rows))

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from benchmark.commands.common import resolve_device
+from benchmark.commands.common import parse_pairs, resolve_device
 
 DEFAULT_PRIORS = ("no-prior", "vposer-slerp")  # when a table spec has no ``default_priors``
 
@@ -15,18 +15,6 @@ DEFAULT_PRIORS = ("no-prior", "vposer-slerp")  # when a table spec has no ``defa
 def default_priors(spec: dict) -> list[str]:
     """The rows a table runs without --prior: the spec's ``default_priors``, else DEFAULT_PRIORS."""
     return list(spec.get("default_priors") or DEFAULT_PRIORS)
-
-
-def _parse_pairs(items, what: str) -> dict:
-    out = {}
-    for item in items or []:
-        key, sep, value = item.partition("=")
-        if not sep or not key or not value:
-            raise ValueError(f"{what} must look like NAME=VALUE, got {item!r}")
-        if key in out:
-            raise ValueError(f"{what}: {key!r} is given twice ({key}={out[key]} and {item}); give each NAME once")
-        out[key] = value
-    return out
 
 
 def _check_data_arg(data: str | None) -> None:
@@ -71,7 +59,7 @@ def _cmd_run(args) -> int:
     priors = args.prior or default_priors(spec)
     for name in priors:
         get_prior_class(name)
-    weights = _parse_pairs(args.weights, "--weights")
+    weights = parse_pairs(args.weights, "--weights")
     unknown = sorted(set(weights) - set(priors))
     if unknown:
         raise ValueError(f"--weights given for prior(s) {unknown} that are not being run ({', '.join(priors)}); "

@@ -55,9 +55,12 @@ def check_options(sequences: int, window_s: float, noise_deg) -> None:
 
 
 def check_encoders(priors: list[str], body, sequences: int = 8, window_s: float = 4.0,
-                   noise_deg=NOISE_DEG, seed: int = 0, device: str = "cpu") -> list[dict]:
+                   noise_deg=NOISE_DEG, seed: int = 0, device: str = "cpu", size: str = "embedded",
+                   weights: dict | None = None) -> list[dict]:
     """One row per (prior, noise): ``{"prior", "noise_deg", "input_mm", "decoded_mm", "worst_mm",
-    "per_sequence_mm"}``; a prior without an encoder gets one row with ``"na"`` (the reason)."""
+    "per_sequence_mm"}``; a prior without an encoder gets one row with ``"na"`` (the reason).
+    ``size`` and ``weights`` ({prior: checkpoint path}) build the adapters as ``run`` does (a prior
+    not in ``weights``: its embedded weights)."""
     from benchmark.core.work_units import select_sequences
     from benchmark.metrics.pose import mpjpe
     from benchmark.protocols.motion_fit import (MotionSource, MotionTargets, decode_parameters, init_motion_state,
@@ -67,7 +70,12 @@ def check_encoders(priors: list[str], body, sequences: int = 8, window_s: float 
     from priors.base import has_motion_encoder
 
     check_options(sequences, window_s, noise_deg)
-    adapters = {name: make_adapter(name, device=device) for name in priors}  # an unknown name fails before any data
+    weights = dict(weights or {})
+    unknown = sorted(set(weights) - set(priors))
+    if unknown:
+        raise ValueError(f"--weights given for prior(s) {unknown} that are not checked ({', '.join(priors)}); "
+                         "add them with --prior NAME or drop those --weights")
+    adapters = {name: make_adapter(name, size=size, weights=weights.get(name), device=device) for name in priors}  # an unknown name fails before any data
     spec = copy.deepcopy(load_table_spec("reconstruction"))
     motions = load_table_motions(spec, None, body, longest_window_s=window_s)
     ids = select_sequences(motions, sequences)

@@ -354,14 +354,16 @@ class MotionDVAE(nn.Module):
 
     # losses
     def dvae_loss(self, states: torch.Tensor, points: torch.Tensor, beta: float, point_weight: float = POINT_WEIGHT,
-                  root_marker_m: float = 0.0) -> dict:
+                  root_marker_m: float = 0.0, encoder_states: torch.Tensor | None = None) -> dict:
         """Clean-data loss for canonical states (B, T, 138) and their body points (B, T, P, 3);
         ``point_weight`` multiplies the squared point errors (m^2). ``root_marker_m`` > 0 adds two
         markers that far along the root's x and z axes to the points (the root's heading then weighs
-        like a lever of that length: a heading error of theta moves a path of length L by theta*L)."""
+        like a lever of that length: a heading error of theta moves a path of length L by theta*L).
+        ``encoder_states``: what the clean encoder reads instead of ``states`` (B, T, 138; a noisy copy
+        in the same canonical frame), its first frame the decoder's x_0; the targets stay ``states``."""
         xn = self.normalise(states)
-        x0n = xn[:, 0]
-        z, qm, qlv, h, rec_n = self.infer(self.encoder, xn, x0n, sample=True)
+        xin = xn if encoder_states is None else self.normalise(encoder_states)
+        z, qm, qlv, h, rec_n = self.infer(self.encoder, xin, xin[:, 0], sample=True)
         pm, plv = self.prior_params(h[:, :-1])
         lv = self.dec_logvar.clamp(*DEC_LOGVAR_RANGE)
         sq = (rec_n[:, 1:] - xn[:, 1:]).square()

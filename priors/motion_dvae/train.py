@@ -68,6 +68,16 @@ CROP_FRAMES = (30, 60, 120)
 CROP_PROBS = (0.2, 0.4, 0.4)
 
 
+def body_joint_noise(pos: torch.Tensor, sigma_range: tuple[float, float], generator: torch.Generator | None = None) -> torch.Tensor:
+    """A noisy copy of canonical pose windows (N, F, 69): every body joint's rotation vector plus
+    N(0, sigma^2) per axis and frame, sigma ~ U(sigma_range) rad per window; translation and root
+    rotation unchanged (the copy stays in the window's canonical frame)."""
+    lo, hi = sigma_range
+    sigma = lo + (hi - lo) * torch.rand(pos.shape[0], generator=generator)
+    noise = torch.randn(pos[..., 6:].shape, generator=generator) * sigma[:, None, None]
+    return torch.cat([pos[..., :6], pos[..., 6:] + noise.to(pos)], -1)
+
+
 def _crop(batch: torch.Tensor, lengths, probs) -> torch.Tensor:
     """The first L frames of a batch of canonical pose windows (N, F, 69), L ~ ``lengths`` (capped at F)."""
     i = int(torch.multinomial(torch.tensor(probs, dtype=torch.float32), 1))
@@ -99,6 +109,7 @@ def train_motion_dvae(
     train_generative: bool = True,
     encoder_point_weight: float | None = None,
     encoder_root_marker_m: float = 0.0,
+    encoder_input_noise: tuple[float, float] | None = None,
     kl_anneal_fraction: float | None = None,
     dataset=None,
 ) -> tuple[MotionDVAE, dict]:
@@ -125,6 +136,13 @@ def train_motion_dvae(
     ``encode_motion`` (the reconstruction table, completion's encoded start); a larger weight fits it
     to reconstruct more closely at the cost of more nats of KL, like a beta < 1 for the inference
     network alone, while the generative model and its loss stay the DVAE's.
+    encoder_input_noise: (lo, hi) rad, with train_generative=False: in training the clean encoder
+    reads a noisy copy of each window (every body joint's rotation vector plus N(0, sigma^2) per
+    axis and frame, sigma ~ U(lo, hi) per window; root and translation clean, so the copy keeps
+    the window's canonical frame), its first frame the decoder's x_0, and is scored on
+    reconstructing the clean window: an encoder for the motions it meets as a completion start
+    (an optimiser's estimate, off by a few degrees per joint), not only for clean data.
+    Validation stays clean.
     steps=0 / denoise_steps=0 skip a phase (the loaded networks are kept as they are).
     """
     if init_denoise_weights is not None:
@@ -133,8 +151,14 @@ def train_motion_dvae(
         init_denoise = True
     if not train_generative and init_weights is None:
         raise ValueError("train_generative=False (encoder only) needs init_weights (a trained generative model)")
-    if (encoder_point_weight is not None or encoder_root_marker_m) and train_generative:
-        raise ValueError("encoder_point_weight and encoder_root_marker_m apply to encoder-only training (train_generative=False)")
+    if (encoder_point_weight is not None or encoder_root_marker_m or encoder_input_noise is not None) and train_generative:
+        raise ValueError("encoder_point_weight, encoder_root_marker_m and encoder_input_noise apply to encoder-only "
+                         "training (train_generative=False)")
+    if encoder_input_noise is not None:
+        lo_hi = tuple(float(v) for v in encoder_input_noise)
+        if len(lo_hi) != 2 or not 0.0 <= lo_hi[0] <= lo_hi[1]:
+            raise ValueError(f"encoder_input_noise must be (lo, hi) rad with 0 <= lo <= hi, got {encoder_input_noise!r}")
+        encoder_input_noise = lo_hi
     pw = float(POINT_WEIGHT if encoder_point_weight is None else encoder_point_weight)  # phase 1's point weight
     cfg = dict(EMBEDDED_CONFIG, **(config or {}))
     data_info: dict = {}
@@ -232,7 +256,12 @@ def train_motion_dvae(
             pts = body_points(*state_to_motion(states), m.rest_joints)
         if not m.training:
             return m.dvae_loss(states, pts, beta, point_weight=POINT_WEIGHT)
-        return m.dvae_loss(states, pts, beta, point_weight=pw, root_marker_m=encoder_root_marker_m)
+        enc_states = None
+        if encoder_input_noise is not None:
+            with torch.no_grad():
+                enc_states = pose_to_state(body_joint_noise(batch, encoder_input_noise))
+        return m.dvae_loss(states, pts, beta, point_weight=pw, root_marker_m=encoder_root_marker_m,
+                           encoder_states=enc_states)
 
     for p in model.parameters():
         p.requires_grad_(False)
@@ -313,6 +342,7 @@ def train_motion_dvae(
             "trained": (["gen_rnn", "prior_mean", "prior_logvar", "decoder", "dec_logvar"] if train_generative else []) + ["encoder"]
                        if steps > 0 else [],
             "point_weight": pw, "validation_point_weight": POINT_WEIGHT, "root_marker_m": encoder_root_marker_m,
+            "encoder_input_noise_rad": list(encoder_input_noise) if encoder_input_noise is not None else None,
             "steps": steps, "train_wall_s": round(phase1_wall, 2), "s_per_step": round(r1.wall_s / max(steps, 1), 4),
             "final_train": r1.final_train, "final_val": r1.final_val, "history": r1.history,
         },
@@ -356,6 +386,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--encoder-root-marker", type=at.non_negative_float, default=0.0, metavar="M",
                     help="with --encoder-only: two extra markers M metres along the root's x and z axes in the clean "
                          "encoder's point loss (weighs the root heading like a lever of M metres)")
+    ap.add_argument("--encoder-input-noise", type=at.non_negative_float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="with --encoder-only: the clean encoder reads windows whose body joints are turned by "
+                         "N(0, sigma^2) rad per axis and frame, sigma ~ U(LO, HI) per window, and learns to "
+                         "reconstruct the clean window")
     ap.add_argument("--encoder-residual", action=argparse.BooleanOptionalAction, default=None,
                     help="whether the clean encoder also reads target minus decoded pose (config encoder_residual; "
                          "default: on, as the embedded weights; from an --init without it, its weights start at zero)")
@@ -378,6 +412,7 @@ def main(argv: list[str] | None = None) -> None:
                                    train_generative=not args.encoder_only,
                                    encoder_point_weight=args.encoder_point_weight,
                                    encoder_root_marker_m=args.encoder_root_marker,
+                                   encoder_input_noise=args.encoder_input_noise,
                                    config=None if args.encoder_residual is None else {"encoder_residual": args.encoder_residual},
                                    dataset=SyntheticTrainingData())
     print({k: rec[k] for k in ("train_wall_s", "checkpoint_bytes")})
