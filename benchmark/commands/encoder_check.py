@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 
 def add_command(sub) -> None:
@@ -28,19 +27,14 @@ def add_command(sub) -> None:
     def run(args) -> int:
         from benchmark.body import get_body
         from benchmark.commands.common import parse_pairs, resolve_device
+        from benchmark.run.registry import check_weights_option
         from benchmark.run.catalog import load_table_spec
         from benchmark.tools.encoder_check import NOISE_DEG, check_encoders, check_options, format_rows
 
         check_options(args.sequences, args.window, tuple(args.noise_deg or NOISE_DEG))  # before any work
         priors = args.prior or list(load_table_spec("table1")["default_priors"])
         weights = parse_pairs(args.weights, "--weights")
-        unknown = sorted(set(weights) - set(priors))
-        if unknown:
-            raise ValueError(f"--weights given for prior(s) {unknown} that are not checked ({', '.join(priors)}); "
-                             "add them with --prior NAME or drop those --weights")
-        for name, path in weights.items():
-            if not Path(path).expanduser().is_file():
-                raise FileNotFoundError(f"--weights {name}={path}: no such file; give the checkpoint's path")
+        check_weights_option(weights, priors, "checked")
         device = resolve_device(args.device)
         rows = check_encoders(priors, get_body("anny", device=device), sequences=args.sequences, window_s=args.window,
                               noise_deg=tuple(args.noise_deg or NOISE_DEG), seed=args.seed, device=device,

@@ -48,7 +48,7 @@ def _backend_options(args, device: str) -> dict:
 def _cmd_run(args) -> int:
     from benchmark.run.catalog import get_profile, load_table_spec
     from benchmark.core.outdir import OutDirLock, check_out_dir
-    from benchmark.run.registry import get_prior_class
+    from benchmark.run.registry import check_weights_option, get_prior_class
 
     # everything a user can get wrong is checked here, before the body, data or any prior loads
     spec = load_table_spec(args.table)
@@ -60,13 +60,7 @@ def _cmd_run(args) -> int:
     for name in priors:
         get_prior_class(name)
     weights = parse_pairs(args.weights, "--weights")
-    unknown = sorted(set(weights) - set(priors))
-    if unknown:
-        raise ValueError(f"--weights given for prior(s) {unknown} that are not being run ({', '.join(priors)}); "
-                         "add them with --prior NAME or drop those --weights")
-    for name, path in weights.items():
-        if not Path(path.split(",")[0]).expanduser().exists():
-            raise FileNotFoundError(f"--weights {name}={path}: no such file or folder")
+    check_weights_option(weights, priors)
     from benchmark.body import parse_body_spec
 
     parse_body_spec(args.body)

@@ -87,6 +87,19 @@ def weights_content_sha256(adapter) -> str | None:
     return h.hexdigest()
 
 
+def check_weights_option(weights: dict, priors, verb: str = "being run") -> None:
+    """``--weights`` ({prior: path}) against the priors a command builds: a prior not among them, or
+    a path that does not exist (a comma-separated list: its first file), is an error naming the
+    option and the fix, raised before any work."""
+    unknown = sorted(set(weights) - set(priors))
+    if unknown:
+        raise ValueError(f"--weights given for prior(s) {unknown} that are not {verb} ({', '.join(priors)}); "
+                         "add them with --prior NAME or drop those --weights")
+    for name, path in weights.items():
+        if not Path(str(path).split(",")[0]).expanduser().exists():
+            raise FileNotFoundError(f"--weights {name}={path}: no such file or folder")
+
+
 def make_adapter(name: str, size: str = "embedded", weights: str | None = None, device: str = "cpu"):
     """Construct the registered prior ``name`` (``size``: "embedded" or "paper"; ``weights``: a
     checkpoint path or None for the embedded weights), moved to ``device`` and in eval mode.

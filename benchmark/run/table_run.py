@@ -94,7 +94,7 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     ``cpus_per_unit``, ``gpus_per_unit``), see :func:`benchmark.run.backends.make_backend`. The backend
     never changes a number."""
     from benchmark.run.backends import make_backend
-    from benchmark.run.registry import make_adapter, weights_content_sha256
+    from benchmark.run.registry import check_weights_option, make_adapter, weights_content_sha256
     from benchmark.run.runner import run_units
     from benchmark.run.table_derive import derive_table
     from benchmark.core.work_units import plan_units, select_sequences
@@ -102,9 +102,7 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
 
     protocol = table_protocol(spec)
     weights = weights or {}
-    unknown = set(weights) - set(priors)
-    if unknown:
-        raise ValueError(f"--weights given for priors not being run: {sorted(unknown)}")
+    check_weights_option(weights, priors)
     # build the backend first: a bad option fails before any data is loaded
     run_backend = backend if callable(backend) else make_backend(backend, device=str(device), **(backend_options or {}))
     motions = protocol.load_motions(spec, data, body)

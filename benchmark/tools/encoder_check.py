@@ -66,15 +66,12 @@ def check_encoders(priors: list[str], body, sequences: int = 8, window_s: float 
     from benchmark.protocols.motion_fit import (MotionSource, MotionTargets, decode_parameters, init_motion_state,
                                                 joints_of, load_table_motions)
     from benchmark.run.catalog import load_table_spec
-    from benchmark.run.registry import make_adapter
+    from benchmark.run.registry import check_weights_option, make_adapter
     from priors.base import has_motion_encoder
 
     check_options(sequences, window_s, noise_deg)
     weights = dict(weights or {})
-    unknown = sorted(set(weights) - set(priors))
-    if unknown:
-        raise ValueError(f"--weights given for prior(s) {unknown} that are not checked ({', '.join(priors)}); "
-                         "add them with --prior NAME or drop those --weights")
+    check_weights_option(weights, priors, "checked")
     adapters = {name: make_adapter(name, size=size, weights=weights.get(name), device=device) for name in priors}  # an unknown name fails before any data
     spec = copy.deepcopy(load_table_spec("reconstruction"))
     motions = load_table_motions(spec, None, body, longest_window_s=window_s)
