@@ -139,7 +139,8 @@ def train_motion_dvae(
     encoder_input_noise: (lo, hi) rad, with train_generative=False: in training the clean encoder
     reads a noisy copy of each window (every body joint's rotation vector plus N(0, sigma^2) per
     axis and frame, sigma ~ U(lo, hi) per window; root and translation clean, so the copy keeps
-    the window's canonical frame), its first frame the decoder's x_0, and is scored on
+    the window's canonical frame), its first frame (held within the data's range,
+    ``MotionDVAE.dvae_loss``) the decoder's x_0, and is scored on
     reconstructing the clean window: an encoder for the motions it meets as a completion start
     (an optimiser's estimate, off by a few degrees per joint), not only for clean data.
     Validation stays clean.
