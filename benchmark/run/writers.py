@@ -280,8 +280,8 @@ def _diagnostics_section(rows: list, labels: list[str]) -> list[str]:
     if not any(c.get("diagnostics") for row in rows for c in row["cells"]):
         return []
     plateau = any("steps_max" in (c.get("diagnostics") or {}) for row in rows for c in row["cells"])
-    unconverged = ("objective still changing by more than the plateau rule's tolerance over its window at the constant "
-                   "learning rate when the fit stopped descending, or at the step cap" if plateau else
+    unconverged = ("objective still changing by more than the plateau rule's tolerance over its window at the fit's "
+                   "last learning rate when it stopped descending, or at the step cap" if plateau else
                    f"data term still falling by more than {CONVERGED_MAX_DECREASE:.0%} over the last "
                    f"{CONVERGENCE_WINDOW:.0%} of the steps")
     lines = ["", "## Fit diagnostics", "",
