@@ -52,7 +52,7 @@ def test_fit_check_meets_every_target(fit_check_run):
     assert r.returncode == 0, r.stdout[-3000:]
 
 
-# -- fit-check --robustness (table1 protocol v6) --
+# -- fit-check --robustness --
 
 def test_robustness_probes_move_the_observation_and_triple_the_steps():
     from benchmark.run.catalog import get_profile, load_table_spec
@@ -63,16 +63,22 @@ def test_robustness_probes_move_the_observation_and_triple_the_steps():
     probes = robustness_specs(spec, profile, base_steps=240)
     perturbed, p_profile = probes["perturbed"]
     assert perturbed["data"]["observation_offset_m"] == PERTURBATION_M and p_profile == profile
-    longer, l_profile = probes["longer"]
-    assert longer["objective"]["plateau"]["tolerance"] == 0.0 and l_profile["steps"] == LONGER * 240
-    assert "observation_offset_m" not in spec["data"] and spec["objective"]["plateau"]["tolerance"] > 0  # untouched
+    assert "observation_offset_m" not in spec["data"]  # the table's own spec untouched
 
-    # a rule with reductions keeps its tolerance (each reduction needs its plateau) and descends longer instead
-    reducing = {**spec, "objective": {**spec["objective"], "plateau": {**spec["objective"]["plateau"], "reductions": 2}}}
-    longer, l_profile = robustness_specs(reducing, profile, base_steps=240)["longer"]
+    # a rule with reductions (table1 since version 7) keeps its tolerance (each reduction needs its
+    # plateau) and descends longer instead
+    assert int(spec["objective"]["plateau"]["reductions"]) == 2
+    longer, l_profile = probes["longer"]
     plateau = longer["objective"]["plateau"]
-    assert plateau["tolerance"] == spec["objective"]["plateau"]["tolerance"] and plateau["reductions"] == 2
+    assert plateau["tolerance"] == spec["objective"]["plateau"]["tolerance"] > 0 and plateau["reductions"] == 2
     assert plateau["min_steps"] == LONGER * 240 - plateau["anneal_steps"] and l_profile["steps"] == LONGER * 240
+    assert "min_steps" not in spec["objective"]["plateau"]
+
+    # a rule without reductions (table1 version 6): tolerance 0, so the fit descends at its constant rate to the cap
+    constant = {**spec, "objective": {**spec["objective"], "plateau": {**spec["objective"]["plateau"], "reductions": 0}}}
+    longer, l_profile = robustness_specs(constant, profile, base_steps=240)["longer"]
+    assert longer["objective"]["plateau"]["tolerance"] == 0.0 and l_profile["steps"] == LONGER * 240
+    assert constant["objective"]["plateau"]["tolerance"] > 0  # untouched
 
 
 def test_robustness_moves_are_read_per_cell_and_per_sequence():
