@@ -137,3 +137,41 @@ def test_every_default_prior_is_robust(prior):
         r = _cli("fit-check", "--robustness", "--prior", prior, "--out", f"{tmp}/fc", timeout=6 * 3600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
     assert "every cell robust" in r.stdout
+
+
+def test_base_run_units_are_copied_not_moved_and_never_overwrite(tmp_path):
+    from benchmark.tools.fit_check import seed_base_units
+
+    run = tmp_path / "run" / "units"
+    run.mkdir(parents=True)
+    names = ["table1__hmvae__points=100_fps=5__b000.json", "table1__hmvae__points=100_fps=5__b000.npz",
+             "table1__hmvae__points=10000_fps=10__b000.json", "table1__hmvae__points=10000_fps=10__b001.json",
+             "table1__hmvae__points=1000_fps=5__b000.json",       # not a robustness cell
+             "table1__no-prior__points=100_fps=5__b000.json",     # another prior
+             "table1__hmvae__points=100_fps=5__b000.json.tmp"]    # not a unit file
+    for n in names:
+        (run / n).write_text(n)
+    out = tmp_path / "out"
+    kept = out / "base-10000x10" / "units" / "table1__hmvae__points=10000_fps=10__b000.json"
+    kept.parent.mkdir(parents=True)
+    kept.write_text("already here")
+    copied = seed_base_units(tmp_path / "run", out, "hmvae")
+    assert sorted(p.name for p in copied) == ["table1__hmvae__points=10000_fps=10__b001.json",
+                                              "table1__hmvae__points=100_fps=5__b000.json",
+                                              "table1__hmvae__points=100_fps=5__b000.npz"]
+    assert all(p.read_text() == p.name for p in copied) and kept.read_text() == "already here"
+    assert sorted(p.name for p in run.iterdir()) == sorted(names)  # the run folder only read
+    assert seed_base_units(tmp_path / "run", out, "hmvae") == []  # a rerun copies nothing
+    with pytest.raises(FileNotFoundError, match="no units/ folder"):
+        seed_base_units(tmp_path / "nowhere", out, "hmvae")
+
+
+def test_cli_base_run_needs_robustness_and_an_existing_run(tmp_path, capsys):
+    from benchmark.cli import main
+
+    assert main(["fit-check", "--base-run", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "--base-run gives the base fits of --robustness" in capsys.readouterr().err
+    assert main(["fit-check", "--robustness", "--prior", "hmvae", "--base-run", str(tmp_path / "none"),
+                 "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err
+    assert "no units/ folder" in err and "MPJPE" not in err

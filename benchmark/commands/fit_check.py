@@ -26,6 +26,10 @@ def add_command(sub) -> None:
     p.add_argument("--robustness", action="store_true",
                    help="instead of the targets: fit the prior at table1's sparsest and densest cell, again with the "
                         "observation moved by 1e-6 m and with 3x the steps, print how far MPJPE moves; exit 1 above 1 mm")
+    p.add_argument("--base-run", default=None, metavar="RUN_DIR",
+                   help="with --robustness: a table1 run folder whose units of the prior at the two cells serve as the "
+                        "base fits (copied into --out, the run folder untouched; reused only when their spec hash "
+                        "matches, otherwise fitted again)")
 
     def run(args) -> int:
         from benchmark.commands.common import resolve_device
@@ -35,7 +39,9 @@ def add_command(sub) -> None:
             if args.start_search is not None:
                 raise ValueError("fit-check: --robustness checks table1's own rules; drop --start-search")
             return run_robustness(prior=args.prior, profile_name=args.profile, device=resolve_device(args.device),
-                                  out=args.out, jobs=args.jobs)
+                                  out=args.out, jobs=args.jobs, base_run=args.base_run)
+        if args.base_run is not None:
+            raise ValueError("fit-check: --base-run gives the base fits of --robustness; add --robustness or drop it")
 
         fps = int(args.fps) if float(args.fps).is_integer() else args.fps
         return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,

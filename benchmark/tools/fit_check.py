@@ -131,13 +131,40 @@ def mpjpe_moves(base: dict, probe: dict) -> tuple[float, float]:
     return cell_move, seq_move
 
 
+def seed_base_units(base_run, out_dir, prior: str, cells=ROBUSTNESS_CELLS) -> list:
+    """Copy the units of ``prior`` at ``cells`` from the table1 run folder ``base_run``
+    (``units/table1__PRIOR__points=P_fps=F__bNNN.json`` and ``.npz``) into
+    ``out_dir/base-PxF/units/``, where the robustness check's base run finds them. The run folder
+    is only read; a file already in ``out_dir`` is kept. The base run reuses a copied unit only when
+    its spec hash and checksum match (the same rules, profile, seed, weights and data); any other is
+    moved aside to ``units/stale/`` there and fitted again. Returns the copied paths."""
+    import shutil
+    from pathlib import Path
+
+    units = Path(base_run).expanduser() / "units"
+    if not units.is_dir():
+        raise FileNotFoundError(f"--base-run {base_run}: no units/ folder there; give the --out folder of a "
+                                "'python -m benchmark run table1' run")
+    copied = []
+    for points, fps in cells:
+        dest = Path(out_dir) / f"base-{points}x{fps}" / "units"
+        for src in sorted(units.glob(f"table1__{prior}__points={points}_fps={fps}__b*")):
+            if src.suffix not in (".json", ".npz") or (dest / src.name).exists():
+                continue
+            dest.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dest / src.name)
+            copied.append(dest / src.name)
+    return copied
+
+
 def run_robustness(prior: str, profile_name: str | None = None, device: str = "cpu", out: str = "runs/fit-check",
-                   seed: int = 0, jobs: int | None = None) -> int:
+                   seed: int = 0, jobs: int | None = None, base_run: str | None = None) -> int:
     """``fit-check --robustness``: ``prior`` on table1's sparsest and densest cell under the
     profile's sequences and rules (the base), then under each probe of :func:`robustness_specs`.
     Prints each cell's MPJPE and how far each probe moves it; exit 1 when a move exceeds
     MAX_MOVE_MM (a number a float perturbation or more steps moves by more measures the optimiser,
-    not the prior)."""
+    not the prior). ``base_run``: a table1 run folder whose units serve as the base fits
+    (:func:`seed_base_units`)."""
     from pathlib import Path
 
     from benchmark.body import get_body
@@ -169,6 +196,10 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
 
     base, probes = {}, {"perturbed": {}, "longer": {}}
     with OutDirLock(out_dir, command=f"python -m benchmark fit-check --robustness --prior {prior}"):
+        if base_run is not None:
+            copied = seed_base_units(base_run, out_dir, prior)
+            print(f"--base-run {base_run}: {len(copied)} unit file(s) of {prior} copied as base fits"
+                  + ("" if copied else " (none there, or already in --out: the base fits are run as usual)"))
         body = get_body("anny", device=device)
         for key in ROBUSTNESS_CELLS:
             base[key] = run("base", spec, profile, key)
