@@ -382,14 +382,12 @@ def test_encoder_only_training_keeps_the_generative_model(tmp_path):
 
 
 def test_encoder_input_noise_trains_the_encoder_on_noisy_copies(tmp_path):
-    from priors.motion_dvae.train import body_joint_noise
-
     windows = smooth_windows(16, 8, seed=3)
     pos = canonical_poses(windows)
-    noisy = body_joint_noise(pos, (0.05, 0.05), torch.Generator().manual_seed(0))
+    noisy, _ = noisy_poses(pos, torch.Generator().manual_seed(0), (0.05, 0.05), body_only=True)
     assert torch.equal(noisy[..., :6], pos[..., :6])  # translation and root as they were: the same canonical frame
     assert 0.03 < float((noisy[..., 6:] - pos[..., 6:]).std()) < 0.07
-    assert torch.equal(body_joint_noise(pos, (0.0, 0.0)), pos)
+    assert torch.equal(noisy_poses(pos, None, (0.0, 0.0), body_only=True)[0], pos)
     # the loss reads the encoder's input from encoder_states; given the clean states, it is the clean loss
     torch.manual_seed(1)
     m = MotionDVAE(**dict(TINY, feedback=True)).eval()

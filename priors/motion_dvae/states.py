@@ -93,7 +93,7 @@ def windows_to_state(windows: torch.Tensor, fps: float = FPS) -> torch.Tensor:
 
 
 def noisy_poses(pos: torch.Tensor, generator: torch.Generator | None = None,
-                sigma_range=DENOISE_SIGMA_RANGE) -> tuple[torch.Tensor, torch.Tensor]:
+                sigma_range=DENOISE_SIGMA_RANGE, body_only: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Noisy copies of canonical pose sequences (N, F, 69) for the denoising phase.
 
     sigma ~ U(sigma_range) per sequence, times N(0, 1) on every joint's axis-angle (root included;
@@ -101,11 +101,16 @@ def noisy_poses(pos: torch.Tensor, generator: torch.Generator | None = None,
     input is at test time. The noise is added to the canonical root rotation vector (the denoise
     table adds it to the world one: the same noise law up to the heading, a documented
     approximation that avoids a per-step conversion of all 22 joints). Returns (noisy, sigma (N,)).
+    body_only: the 21 body joints only; root rotation and translation unchanged, so the copy stays
+    in the window's canonical frame (the clean encoder's noisy training inputs).
     """
     N = pos.shape[0]
     lo, hi = sigma_range
     sigma = lo + (hi - lo) * torch.rand(N, generator=generator)
-    noise = torch.randn(pos[..., 3:].shape, generator=generator) * sigma[:, None, None]
+    first = 6 if body_only else 3
+    noise = torch.randn(pos[..., first:].shape, generator=generator) * sigma[:, None, None]
+    if body_only:
+        return torch.cat([pos[..., :6], pos[..., 6:] + noise.to(pos)], -1), sigma
     aa = pos[..., 3:] + noise.to(pos.device)
     root = axis_angle_to_matrix(aa[..., :3])  # (N, F, 3, 3)
     Rinv = yaw_matrix(-heading(root[:, 0]))  # (N, 3, 3)

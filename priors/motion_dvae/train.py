@@ -68,16 +68,6 @@ CROP_FRAMES = (30, 60, 120)
 CROP_PROBS = (0.2, 0.4, 0.4)
 
 
-def body_joint_noise(pos: torch.Tensor, sigma_range: tuple[float, float], generator: torch.Generator | None = None) -> torch.Tensor:
-    """A noisy copy of canonical pose windows (N, F, 69): every body joint's rotation vector plus
-    N(0, sigma^2) per axis and frame, sigma ~ U(sigma_range) rad per window; translation and root
-    rotation unchanged (the copy stays in the window's canonical frame)."""
-    lo, hi = sigma_range
-    sigma = lo + (hi - lo) * torch.rand(pos.shape[0], generator=generator)
-    noise = torch.randn(pos[..., 6:].shape, generator=generator) * sigma[:, None, None]
-    return torch.cat([pos[..., :6], pos[..., 6:] + noise.to(pos)], -1)
-
-
 def _crop(batch: torch.Tensor, lengths, probs) -> torch.Tensor:
     """The first L frames of a batch of canonical pose windows (N, F, 69), L ~ ``lengths`` (capped at F)."""
     i = int(torch.multinomial(torch.tensor(probs, dtype=torch.float32), 1))
@@ -260,7 +250,7 @@ def train_motion_dvae(
         enc_states = None
         if encoder_input_noise is not None:
             with torch.no_grad():
-                enc_states = pose_to_state(body_joint_noise(batch, encoder_input_noise))
+                enc_states = pose_to_state(noisy_poses(batch, None, encoder_input_noise, body_only=True)[0])
         return m.dvae_loss(states, pts, beta, point_weight=pw, root_marker_m=encoder_root_marker_m,
                            encoder_states=enc_states)
 
