@@ -31,9 +31,11 @@ import torch
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.facing import FACING_RULES, facing_search, observed_facing
-from benchmark.protocols.fit_state import (FitState, PlateauRule, body_parameters, init_state, optimise,
-                                           optimise_to_plateau, parameter_groups)
-from benchmark.protocols.start_search import START_SEARCH_RULES, is_prior_free, prior_free_start, searched_start
+from benchmark.protocols.fit_state import (FitState, MultiStart, PlateauRule, body_parameters, init_state, optimise,
+                                           optimise_to_plateau, parameter_groups, repeat_batch, select_copies,
+                                           vary_copies)
+from benchmark.protocols.start_search import (ENCODED_START, START_SEARCH_RULES, is_prior_free, prior_free_start,
+                                              searched_start)
 from priors.base import FitBatch, PriorAdapter
 
 log = logging.getLogger(__name__)
@@ -43,7 +45,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         generator: torch.Generator, device, lr_final_fraction: float = 0.1, loss_vertices: int | None = None,
         callback=None, facing: str = "heading8", shape_lr_scale: float = 1.0,
         points_per_step: int | None = None, latent_init: str = "sample",
-        start_search: str = "none", plateau: PlateauRule | None = None) -> tuple[FitState, dict]:
+        start_search: str = "none", plateau: PlateauRule | None = None,
+        multi_start: MultiStart | None = None) -> tuple[FitState, dict]:
     """Optimise one batch (see module docstring). Returns the state and a log: ``history`` (the
     logged steps), ``data_trace`` ((steps, B) the data term of every sequence at every step, mm)
     and, with ``facing="search"``, the facing search's choices.
@@ -68,6 +71,11 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     ``plateau``: the step rule of protocol v6 (:class:`~benchmark.protocols.fit_state.PlateauRule`):
     ``steps`` is then the cap, and the log's ``plateau`` holds the steps taken and each sequence's
     convergence. None: ``steps`` steps of cosine decay (versions 1-5).
+
+    ``multi_start``: where the start was encoded (``start_search="observation"``, a prior with a
+    motion encoder), fit :class:`~benchmark.protocols.fit_state.MultiStart`'s copies of every
+    sequence side by side and keep, per sequence, the one with the lowest objective at the last step;
+    the log's ``multi_start`` holds each copy's final objective and the chosen copy. None: one start.
     """
     subset = body.loss_vertex_indices(loss_vertices)
     if facing not in FACING_RULES:
@@ -96,10 +104,19 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         sampler = torch.Generator().manual_seed(int(torch.randint(0, 2**62, (1,), generator=generator)))
 
     facing_log["facing_s"] = time.perf_counter() - t_facing
+    single, K = state, 1  # the batch's own state (a template after multi_start's selection); copies per sequence
     if start_search in ("limbs", "observation") and not own_start:
         t_search = time.perf_counter()
+        copies = multi_start.starts if multi_start is not None and start_search == "observation" else 1
+        mean = {k: v.detach().clone() for k, v in state.latents.items()}  # latent_init's start, before encoding
         state, search_log = searched_start(adapter, body, batch, state, start_search, generator, device, lr,
-                                           lambda_prior)
+                                           lambda_prior, copies=copies)
+        if copies > 1 and search_log.get("start") == ENCODED_START:  # every copy holds the encoded start
+            K = copies
+            vary_copies(state, mean, multi_start, generator)
+            batch = repeat_batch(batch, K)
+            B = batch.batch_size
+            data_term = StaticChamfer(batch.points.flatten(0, 1), batch.lengths.flatten(0, 1))
         facing_log.update(search_log, start_search_s=time.perf_counter() - t_search)
 
     def step_loss(step):
@@ -121,6 +138,16 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         history, plateau_log = optimise_to_plateau(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, objective_trace,
                                                    plateau, callback=callback)
     data_trace = torch.stack(trace) if trace else torch.zeros(0, B)
+    if K > 1:  # each sequence keeps its copy with the lowest objective at the last step
+        final = objective_trace[-1].detach().cpu().double().view(-1, K)
+        best = final.argmin(1)
+        pick = torch.arange(final.shape[0]) * K + best
+        state = select_copies(state, pick.to(single.obs_t.device), single)
+        data_trace = data_trace[:, pick.to(data_trace.device)]
+        plateau_log = {k: ([v[i] for i in pick.tolist()] if isinstance(v, list) and len(v) == B else v)
+                       for k, v in plateau_log.items()}
+        facing_log["multi_start"] = {"chosen": best.tolist(),
+                                     "objective": [[round(float(v), 4) for v in row] for row in final]}
     return state, {"history": history, "data_trace": data_trace, **facing_log,
                    **({"plateau": plateau_log} if plateau_log else {})}
 

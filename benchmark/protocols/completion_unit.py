@@ -332,7 +332,8 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
                       lambda_prior=float(obj["lambda_prior"]), generator=g, device=device,
                       loss_vertices=loss_vertex_count(profile), facing=facing_rule(table_spec),
                       shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(table_spec),
-                      start_search=start_search_rule(table_spec), plateau=plateau_rule(table_spec))
+                      start_search=start_search_rule(table_spec), plateau=plateau_rule(table_spec),
+                      multi_start=multi_start_rule(table_spec))
     t1 = time.perf_counter()
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
     sp = profile.get("surface_points", "all")
@@ -367,7 +368,7 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
 
 
 # what the facing search logs (completion.facing_search), and the limb start search's choices per stage
-FACING_LOG = ("facing_yaw_rad", "facing_scores_mm", "start_choice_counts")
+FACING_LOG = ("facing_yaw_rad", "facing_scores_mm", "start_choice_counts", "multi_start")
 
 
 def facing_rule(spec: dict) -> str:
@@ -401,6 +402,17 @@ def plateau_rule(spec: dict):
         src = spec.get("_source") or f"benchmark/tables/{spec.get('name', '?')}.yaml"
         raise ValueError(f"{src}: field 'objective.step_rule' is {schedule!r}; choose one of {', '.join(STEP_RULES)}")
     return PlateauRule.from_spec(obj.get("plateau")) if schedule == "plateau" else None
+
+
+def multi_start_rule(spec: dict):
+    """``objective.multi_start`` (:class:`benchmark.protocols.fit_state.MultiStart`), or None: one start."""
+    from benchmark.protocols.fit_state import MultiStart
+
+    try:
+        return MultiStart.from_spec(spec["objective"].get("multi_start"))
+    except ValueError as e:
+        src = spec.get("_source") or f"benchmark/tables/{spec.get('name', '?')}.yaml"
+        raise ValueError(f"{src}: {e}") from None
 
 
 def unit_ground_truth_pose(data_source: CompletionData, sequence_ids, data: UnitData):

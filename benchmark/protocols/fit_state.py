@@ -421,6 +421,72 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
     return history, out
 
 
+@dataclass(frozen=True)
+class MultiStart:
+    """Several starts per sequence for the priors whose start is encoded (``objective.multi_start``,
+    a table1 version 8 candidate, docs/protocol.md): ``starts`` copies of every sequence are fitted
+    side by side from the encoded start (:func:`benchmark.protocols.start_search.encoded_start`),
+    the prior's mean latents, and ``starts - 2`` encoded starts with seeded Gaussian noise of
+    ``noise`` (in the latents' own units: the standard priors' standard deviation) added to their
+    latents; each sequence keeps the copy with the lowest objective at the last step. The rigid
+    parameters and the shape start alike in every copy."""
+
+    starts: int = 1
+    noise: float = 0.5
+
+    @classmethod
+    def from_spec(cls, value) -> "MultiStart | None":
+        """The rule of an ``objective.multi_start`` mapping; None (one start) when absent."""
+        if value is None:
+            return None
+        if not isinstance(value, dict):
+            raise ValueError(f"objective.multi_start: expected a mapping like {{starts: 4, noise: 0.5}}, got {value!r}")
+        unknown = set(value) - {"starts", "noise"}
+        if unknown:
+            raise ValueError(f"objective.multi_start: unknown key(s) {sorted(unknown)}; known: starts, noise")
+        starts, noise = value.get("starts", 1), value.get("noise", 0.5)
+        if not isinstance(starts, int) or isinstance(starts, bool) or starts < 1 or not float(noise) > 0:
+            raise ValueError(f"objective.multi_start: {value!r}: 'starts' must be an integer >= 1 and 'noise' > 0")
+        return cls(starts=starts, noise=float(noise))
+
+
+def repeat_state(state: FitState, k: int) -> FitState:
+    """Every variable of ``state`` repeated ``k`` times per sequence, hypothesis-major like
+    :func:`repeat_batch` (b0k0, b0k1, ...), as fresh leaves."""
+    rep = lambda x: None if x is None else x.detach().repeat_interleave(k, dim=0).clone().requires_grad_(True)  # noqa: E731
+    return FitState(adapter=state.adapter, latents={n: rep(v) for n, v in state.latents.items()},
+                    shape_param=rep(state.shape_param), obs_t=state.obs_t.repeat_interleave(k, dim=0),
+                    window_s=state.window_s, root=rep(state.root), trans=rep(state.trans), heading=rep(state.heading),
+                    offset=rep(state.offset), bounded_shape=state.bounded_shape)
+
+
+@torch.no_grad()
+def vary_copies(state: FitState, mean: dict, rule: MultiStart, generator: torch.Generator) -> None:
+    """Set the starts of a state of ``rule.starts`` copies per sequence whose copies all hold the
+    encoded start (:func:`benchmark.protocols.start_search.encoded_start` with ``copies``): copy 1
+    takes the prior's mean latents ``mean`` (batch B), copies 2.. the encoded latents plus seeded
+    Gaussian noise of ``rule.noise``; copy 0 and every other variable stay. In place."""
+    K = rule.starts
+    for name, v in state.latents.items():
+        view = v.view(-1, K, *v.shape[1:])
+        m = mean.get(name)
+        if K > 1 and m is not None and m.shape == view[:, 1].shape:
+            view[:, 1] = m.to(v)
+        if K > 2:
+            noise = torch.randn((view.shape[0], K - 2, *v.shape[1:]), generator=generator, dtype=v.dtype)
+            view[:, 2:] += rule.noise * noise.to(v.device)
+
+
+def select_copies(state: FitState, pick: torch.Tensor, like: FitState) -> FitState:
+    """The copies ``pick`` ((B,) flat indices, one per sequence) of a :func:`start_copies` state, as a
+    fresh leaf state of ``like``'s batch."""
+    take = lambda x: None if x is None else x.detach()[pick].clone().requires_grad_(True)  # noqa: E731
+    return FitState(adapter=like.adapter, latents={k: take(v) for k, v in state.latents.items()},
+                    shape_param=take(state.shape_param), obs_t=like.obs_t, window_s=like.window_s,
+                    root=take(state.root), trans=take(state.trans), heading=take(state.heading),
+                    offset=take(state.offset), bounded_shape=like.bounded_shape)
+
+
 @torch.no_grad()
 def _scale_steps(tensors: list, before: list, scale: torch.Tensor) -> None:
     """Scale each sequence's last optimiser step by ``scale`` (B,): its own learning rate (Adam's

@@ -18,14 +18,15 @@ import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, decode_grid,
-                                              frame_chamfer, init_state, optimise, repeat_batch, rigid_parameters,
-                                              set_rigid, subset_batch)
+                                              frame_chamfer, init_state, optimise, repeat_batch, repeat_state,
+                                              rigid_parameters, set_rigid, subset_batch)
 from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encoder
 
 # objective.start_search: "none"; "limbs" (table1 protocol v4): :func:`limb_start_search` for the
 # per-frame priors; "observation" (v5): the same, and every other prior with a motion encoder starts
 # from the prior-free body's limb-searched start, encoded (:func:`encoded_start`).
 START_SEARCH_RULES = ("none", "limbs", "observation")
+ENCODED_START = "encoded prior-free start"  # encoded_start's log["start"]
 START_SEARCH_STEPS = (15, 25)  # coarse-fit steps per start hypothesis: rigid parameters only, then every variable
 # The limb start hypotheses, in stages: first each arm in the T-pose, lowered to the side, or lowered
 # with the elbow bent forward; then each leg as it is, or with the hip flexed forward and the knee
@@ -226,19 +227,20 @@ def _leaf_copy(state: FitState, **changes) -> FitState:
 
 def searched_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, rule: str,
                    generator: torch.Generator, device, lr: float, lambda_prior: float,
-                   facing: str = "observation") -> tuple[FitState, dict]:
+                   facing: str = "observation", copies: int = 1) -> tuple[FitState, dict]:
     """The start search of ``objective.start_search`` ``rule`` (``limbs`` or ``observation``) from
     ``state``: :func:`limb_start_search` for the per-frame priors; under ``observation``, every other
     prior with a motion encoder starts from the prior-free start (``facing`` as in
-    :func:`prior_free_start`), encoded (:func:`encoded_start`)."""
+    :func:`prior_free_start`), encoded (:func:`encoded_start`; ``copies`` as there)."""
     state, log = limb_start_search(adapter, body, batch, state, lr, lambda_prior)
     if rule == "observation" and "start_choice_counts" not in log:
-        state, log = encoded_start(adapter, body, batch, state, generator, device, lr, lambda_prior, facing=facing)
+        state, log = encoded_start(adapter, body, batch, state, generator, device, lr, lambda_prior, facing=facing,
+                                   copies=copies)
     return state, log
 
 
 def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, generator: torch.Generator, device,
-                  lr: float, lambda_prior: float, facing: str = "observation") -> tuple[FitState, dict]:
+                  lr: float, lambda_prior: float, facing: str = "observation", copies: int = 1) -> tuple[FitState, dict]:
     """A window or continuous prior's start under ``start_search: observation`` (table1 protocol v5):
     the prior-free body's start on the observation (:func:`prior_free_start`: facing, then limb by
     limb; ``facing`` as there), at the output timestamps (or, for a fixed-window prior whose latents
@@ -247,10 +249,15 @@ def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState,
     its body shape; the free rigid parameters set to its root orientation and translation at the
     observed frames (:func:`~benchmark.protocols.fit_state.set_rigid`). Latents the encoder does not
     return keep ``state``'s. A prior it does not apply to (:func:`supports_encoded_start`) keeps
-    ``state``. Returns the state and a log."""
+    ``state``. ``copies`` > 1 (``objective.multi_start``): the state and the encoding for every
+    sequence repeated that many times (hypothesis-major, :func:`~benchmark.protocols.fit_state.repeat_batch`),
+    so the adapter's own per-batch state (e.g. the start its prior term measures from) is the copies'.
+    Returns the state and a log."""
     if not supports_encoded_start(adapter):
         return state, {"start_search": "none: a per-frame prior or a prior without a motion encoder"}
     ref, ref_log = prior_free_start(body, batch, generator, device, lr, lambda_prior, facing=facing)
+    if copies > 1:
+        ref, state, batch = repeat_state(ref, copies), repeat_state(state, copies), repeat_batch(batch, copies)
 
     def encoded_on(t):
         rot, trans = body_parameters(ref, t)
@@ -275,4 +282,4 @@ def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState,
         shape_param = ref.shape_param
     out = _leaf_copy(dataclasses.replace(state, latents=latents, shape_param=shape_param))
     set_rigid(out, batch.timestamps, rot_obs, trans_obs)
-    return out, {"start_choice_counts": ref_log.get("start_choice_counts", []), "start": "encoded prior-free start"}
+    return out, {"start_choice_counts": ref_log.get("start_choice_counts", []), "start": ENCODED_START}

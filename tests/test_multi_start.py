@@ -1,0 +1,78 @@
+"""Several starts per sequence for the encoded priors (``objective.multi_start``, a table1 version 8
+candidate; benchmark.protocols.fit_state.MultiStart): the copies start where the rule says, each
+sequence keeps the copy with the lowest final objective, and one start is the single-start fit."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from benchmark.protocols.completion import fit
+from benchmark.protocols.fit_state import MultiStart, PlateauRule, init_state, select_copies, vary_copies
+from benchmark.protocols.start_search import encoded_start
+from benchmark.run.registry import make_adapter
+from tests.test_start_search import _fresh_cache, _walkers
+
+
+def test_the_rule_reads_its_mapping_and_names_what_is_wrong():
+    assert MultiStart.from_spec(None) is None
+    assert MultiStart.from_spec({"starts": 4, "noise": 0.25}) == MultiStart(starts=4, noise=0.25)
+    for bad, words in (({"starts": 0}, "'starts' must be an integer"), ({"starts": 2.5}, "'starts' must be"),
+                       ({"starts": 3, "noise": 0}, "'noise' > 0"), ({"count": 3}, "unknown key(s) ['count']"),
+                       ([3], "expected a mapping")):
+        with pytest.raises(ValueError, match=None) as err:
+            MultiStart.from_spec(bad)
+        assert words in str(err.value) and "objective.multi_start" in str(err.value)
+
+
+def test_copies_start_encoded_at_the_mean_and_with_seeded_noise(anny_body, monkeypatch):
+    _fresh_cache(monkeypatch)
+    batch = _walkers(anny_body, frames=4, points=60)
+    adapter = make_adapter("sequential-primitives")
+    g = torch.Generator().manual_seed(0)
+    own = init_state(adapter, anny_body, batch, g, "cpu", search_heading=False, latent_init="mean")
+    mean = {k: v.detach().clone() for k, v in own.latents.items()}
+    state, _ = encoded_start(adapter, anny_body, batch, own, g, device="cpu", lr=0.03, lambda_prior=0.01)
+    rule = MultiStart(starts=4, noise=0.5)
+    copies, _ = encoded_start(adapter, anny_body, batch, own, g, device="cpu", lr=0.03, lambda_prior=0.01, copies=4)
+    again, _ = encoded_start(adapter, anny_body, batch, own, g, device="cpu", lr=0.03, lambda_prior=0.01, copies=4)
+    vary_copies(copies, mean, rule, torch.Generator().manual_seed(1))
+    vary_copies(again, mean, rule, torch.Generator().manual_seed(1))
+    B = batch.batch_size
+    for k, v in copies.latents.items():
+        view = v.detach().view(B, 4, *state.latents[k].shape[1:])
+        assert v.is_leaf and v.requires_grad and torch.equal(v, again.latents[k])  # seeded
+        # copy 0 is the encoded start (the encoder on the repeated batch: equal up to float rounding)
+        assert torch.allclose(view[:, 0], state.latents[k].detach(), atol=1e-5) and torch.equal(view[:, 1], mean[k])
+        noise = view[:, 2:] - view[:, :1]
+        assert 0.3 < float(noise.std()) < 0.7 and not torch.equal(view[:, 2], view[:, 3])
+    for name in ("root", "trans", "heading", "offset"):
+        x = getattr(state, name)
+        if x is not None:
+            assert torch.allclose(getattr(copies, name).detach(), x.detach().repeat_interleave(4, dim=0), atol=1e-5)
+    back = select_copies(copies, torch.arange(B) * 4 + 1, state)  # copy 1 of each sequence: the mean
+    assert all(torch.equal(back.latents[k].detach(), mean[k]) and back.latents[k].is_leaf for k in state.latents)
+
+
+def test_each_sequence_keeps_its_copy_with_the_lowest_objective(anny_body, monkeypatch):
+    """Three starts, fitted side by side: the log holds every copy's final objective and the chosen
+    one is each sequence's lowest; the state and the per-sequence logs are the batch's size; one
+    start is the fit without the rule, bit for bit."""
+    _fresh_cache(monkeypatch)
+    batch = _walkers(anny_body, frames=4, points=60)
+    adapter = make_adapter("sequential-primitives")
+    args = dict(steps=70, lr=0.03, lambda_prior=0.01, device="cpu", loss_vertices=200, facing="observation",
+                latent_init="mean", start_search="observation",
+                plateau=PlateauRule(window=10, smoothing=2, check_every=5, anneal_steps=5, reductions=1))
+    runs = {}
+    for name, rule in (("none", None), ("one", MultiStart(starts=1)), ("three", MultiStart(starts=3))):
+        runs[name] = fit(adapter, anny_body, batch, generator=torch.Generator().manual_seed(0), multi_start=rule, **args)
+    state, info = runs["three"]
+    log = info["multi_start"]
+    assert len(log["objective"]) == 2 and all(len(row) == 3 for row in log["objective"])
+    assert log["chosen"] == [min(range(3), key=row.__getitem__) for row in log["objective"]]
+    assert info["data_trace"].shape[1] == 2 and len(info["plateau"]["converged"]) == 2
+    assert all(v.shape[0] == 2 for v in state.latents.values()) and state.obs_t.shape[0] == 2
+    for a, b in zip(runs["none"][0].parameters(), runs["one"][0].parameters()):
+        assert torch.equal(a, b)
+    assert "multi_start" not in runs["one"][1]
