@@ -25,7 +25,7 @@ def test_the_rule_reads_its_mapping_and_names_what_is_wrong():
         assert words in str(err.value) and "objective.multi_start" in str(err.value)
 
 
-def test_copies_start_encoded_at_the_mean_and_with_seeded_noise(anny_body, monkeypatch):
+def test_copies_start_encoded_at_the_own_start_and_with_seeded_noise(anny_body, monkeypatch):
     _fresh_cache(monkeypatch)
     batch = _walkers(anny_body, frames=4, points=60)
     adapter = make_adapter("sequential-primitives")
@@ -36,8 +36,8 @@ def test_copies_start_encoded_at_the_mean_and_with_seeded_noise(anny_body, monke
     rule = MultiStart(starts=4, noise=0.5)
     copies, _ = encoded_start(adapter, anny_body, batch, own, g, device="cpu", lr=0.03, lambda_prior=0.01, copies=4)
     again, _ = encoded_start(adapter, anny_body, batch, own, g, device="cpu", lr=0.03, lambda_prior=0.01, copies=4)
-    vary_copies(copies, mean, rule, torch.Generator().manual_seed(1))
-    vary_copies(again, mean, rule, torch.Generator().manual_seed(1))
+    vary_copies(copies, own, rule, torch.Generator().manual_seed(1))
+    vary_copies(again, own, rule, torch.Generator().manual_seed(1))
     B = batch.batch_size
     for k, v in copies.latents.items():
         view = v.detach().view(B, 4, *state.latents[k].shape[1:])
@@ -46,12 +46,15 @@ def test_copies_start_encoded_at_the_mean_and_with_seeded_noise(anny_body, monke
         assert torch.allclose(view[:, 0], state.latents[k].detach(), atol=1e-5) and torch.equal(view[:, 1], mean[k])
         noise = view[:, 2:] - view[:, :1]
         assert 0.3 < float(noise.std()) < 0.7 and not torch.equal(view[:, 2], view[:, 3])
-    for name in ("root", "trans", "heading", "offset"):
+    for name in ("shape_param", "root", "trans", "heading", "offset"):  # copy 1: the fit's own start; the others encoded
         x = getattr(state, name)
         if x is not None:
-            assert torch.allclose(getattr(copies, name).detach(), x.detach().repeat_interleave(4, dim=0), atol=1e-5)
-    back = select_copies(copies, torch.arange(B) * 4 + 1, state)  # copy 1 of each sequence: the mean
+            view = getattr(copies, name).detach().view(B, 4, *x.shape[1:])
+            assert torch.equal(view[:, 1], getattr(own, name).detach())
+            assert torch.allclose(view[:, [0, 2, 3]], x.detach()[:, None].expand(-1, 3, *x.shape[1:]), atol=1e-5)
+    back = select_copies(copies, torch.arange(B) * 4 + 1, state)  # copy 1 of each sequence: the own start
     assert all(torch.equal(back.latents[k].detach(), mean[k]) and back.latents[k].is_leaf for k in state.latents)
+    assert torch.equal(back.shape_param.detach(), own.shape_param.detach())
 
 
 def test_each_sequence_keeps_its_copy_with_the_lowest_objective(anny_body, monkeypatch):

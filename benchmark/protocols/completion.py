@@ -108,12 +108,11 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     if start_search in ("limbs", "observation") and not own_start:
         t_search = time.perf_counter()
         copies = multi_start.starts if multi_start is not None and start_search == "observation" else 1
-        mean = {k: v.detach().clone() for k, v in state.latents.items()}  # latent_init's start, before encoding
         state, search_log = searched_start(adapter, body, batch, state, start_search, generator, device, lr,
                                            lambda_prior, copies=copies)
         if copies > 1 and search_log.get("start") == ENCODED_START:  # every copy holds the encoded start
             K = copies
-            vary_copies(state, mean, multi_start, generator)
+            vary_copies(state, single, multi_start, generator)
             batch = repeat_batch(batch, K)
             B = batch.batch_size
             data_term = StaticChamfer(batch.points.flatten(0, 1), batch.lengths.flatten(0, 1))

@@ -426,10 +426,11 @@ class MultiStart:
     """Several starts per sequence for the priors whose start is encoded (``objective.multi_start``,
     a table1 version 8 candidate, docs/protocol.md): ``starts`` copies of every sequence are fitted
     side by side from the encoded start (:func:`benchmark.protocols.start_search.encoded_start`),
-    the prior's mean latents, and ``starts - 2`` encoded starts with seeded Gaussian noise of
+    the fit's own start before it (the prior's mean latents, turned to the facing, the neutral
+    shape), and ``starts - 2`` encoded starts with seeded Gaussian noise of
     ``noise`` (in the latents' own units: the standard priors' standard deviation) added to their
-    latents; each sequence keeps the copy with the lowest objective at the last step. The rigid
-    parameters and the shape start alike in every copy."""
+    latents; each sequence keeps the copy with the lowest objective at the last step. The encoded
+    copies share the encoded start's rigid parameters and shape."""
 
     starts: int = 1
     noise: float = 0.5
@@ -461,18 +462,24 @@ def repeat_state(state: FitState, k: int) -> FitState:
 
 
 @torch.no_grad()
-def vary_copies(state: FitState, mean: dict, rule: MultiStart, generator: torch.Generator) -> None:
+def vary_copies(state: FitState, start: FitState, rule: MultiStart, generator: torch.Generator) -> None:
     """Set the starts of a state of ``rule.starts`` copies per sequence whose copies all hold the
     encoded start (:func:`benchmark.protocols.start_search.encoded_start` with ``copies``): copy 1
-    takes the prior's mean latents ``mean`` (batch B), copies 2.. the encoded latents plus seeded
-    Gaussian noise of ``rule.noise``; copy 0 and every other variable stay. In place."""
+    takes every variable of ``start`` (batch B: the fit's own start before the encoded one, the
+    prior's mean turned to the facing), copies 2.. the encoded latents plus seeded Gaussian noise of
+    ``rule.noise``; copy 0 stays. In place."""
     K = rule.starts
-    for name, v in state.latents.items():
+    pairs = [(state.latents[n], start.latents.get(n)) for n in state.latents]
+    pairs += [(getattr(state, n), getattr(start, n)) for n in ("shape_param", "root", "trans", "heading", "offset")]
+    for v, own in pairs:
+        if v is None:
+            continue
         view = v.view(-1, K, *v.shape[1:])
-        m = mean.get(name)
-        if K > 1 and m is not None and m.shape == view[:, 1].shape:
-            view[:, 1] = m.to(v)
-        if K > 2:
+        if K > 1 and own is not None and own.shape == view[:, 1].shape:
+            view[:, 1] = own.detach().to(v)
+    if K > 2:
+        for v in state.latents.values():
+            view = v.view(-1, K, *v.shape[1:])
             noise = torch.randn((view.shape[0], K - 2, *v.shape[1:]), generator=generator, dtype=v.dtype)
             view[:, 2:] += rule.noise * noise.to(v.device)
 
