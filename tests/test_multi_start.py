@@ -79,3 +79,19 @@ def test_each_sequence_keeps_its_copy_with_the_lowest_objective(anny_body, monke
     for a, b in zip(runs["none"][0].parameters(), runs["one"][0].parameters()):
         assert torch.equal(a, b)
     assert "multi_start" not in runs["one"][1]
+
+
+def test_fit_check_sets_the_candidate_rule_and_says_so():
+    """``fit-check --multi-start K`` fits table1 under the candidate rule and its report says the
+    protocol is not table1's as committed; a count below 1 is refused before anything is fitted."""
+    from benchmark.run.catalog import load_table_spec
+    from benchmark.tools.fit_check import MULTI_START_NOISE, run_robustness, with_multi_start
+
+    spec = load_table_spec("table1")
+    assert "multi_start" not in spec["objective"]  # not a rule of the committed protocol
+    assert with_multi_start(spec, None) == "" and "multi_start" not in spec["objective"]
+    note = with_multi_start(spec, 4)
+    assert spec["objective"]["multi_start"] == {"starts": 4, "noise": MULTI_START_NOISE}
+    assert "not table1's protocol as committed" in note
+    with pytest.raises(ValueError, match="--multi-start 0"):
+        run_robustness("frequency-guided", multi_start=0)

@@ -22,6 +22,9 @@ def add_command(sub) -> None:
     p.add_argument("--start-search", default=None, choices=("none", "limbs", "observation"),
                    help="override the table spec's objective.start_search (how per-frame priors search their start); "
                         "default: the spec's rule")
+    p.add_argument("--multi-start", type=int, default=None, metavar="K",
+                   help="fit the encoded priors from K starts each, keeping each sequence's lowest objective: the "
+                        "candidate rule objective.multi_start (docs/protocol.md), not table1's protocol as committed")
 
     p.add_argument("--robustness", action="store_true",
                    help="instead of the targets: fit the prior at table1's sparsest and densest cell, again with the "
@@ -39,13 +42,13 @@ def add_command(sub) -> None:
             if args.start_search is not None:
                 raise ValueError("fit-check: --robustness checks table1's own rules; drop --start-search")
             return run_robustness(prior=args.prior, profile_name=args.profile, device=resolve_device(args.device),
-                                  out=args.out, jobs=args.jobs, base_run=args.base_run)
+                                  out=args.out, jobs=args.jobs, base_run=args.base_run, multi_start=args.multi_start)
         if args.base_run is not None:
             raise ValueError("fit-check: --base-run gives the base fits of --robustness; add --robustness or drop it")
 
         fps = int(args.fps) if float(args.fps).is_integer() else args.fps
         return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,
                              device=resolve_device(args.device), out=args.out, jobs=args.jobs,
-                             start_search=args.start_search)
+                             start_search=args.start_search, multi_start=args.multi_start)
 
     p.set_defaults(func=run)

@@ -22,6 +22,24 @@ import copy
 TARGETS = {"mpjpe_mm": 40.0, "chamfer_mm": 12.0, "root_err_deg_max": 10.0, "backwards": 0, "not_converged": 0}
 
 
+MULTI_START_NOISE = 0.5  # fit-check --multi-start's noise on the encoded copies (objective.multi_start)
+
+
+def with_multi_start(spec: dict, starts: int | None) -> str:
+    """Set ``objective.multi_start`` to ``starts`` copies (``--multi-start``: a candidate rule,
+    docs/protocol.md) in the table spec ``spec``; returns the note the report prints ("" for None)."""
+    if starts is None:
+        return ""
+    from benchmark.protocols.fit_state import MultiStart
+
+    if isinstance(starts, bool) or not isinstance(starts, int) or starts < 1:
+        raise ValueError(f"fit-check: --multi-start {starts!r}: give the number of starts, an integer >= 1")
+    spec["objective"]["multi_start"] = {"starts": starts, "noise": MULTI_START_NOISE}
+    MultiStart.from_spec(spec["objective"]["multi_start"])
+    return (f", objective.multi_start {{starts: {starts}, noise: {MULTI_START_NOISE:g}}} (not table1's protocol as "
+            "committed)")
+
+
 def check_cell(cell: dict, targets: dict = TARGETS) -> list[tuple[str, float | None, float, bool]]:
     """(figure, value, target, passed) for each target, from a derived table cell."""
     diag = cell.get("diagnostics") or {}
@@ -37,7 +55,7 @@ def check_cell(cell: dict, targets: dict = TARGETS) -> list[tuple[str, float | N
 
 def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10, profile_name: str | None = None,
                   device: str = "cpu", out: str = "runs/fit-check", seed: int = 0, jobs: int | None = None,
-                  targets: dict = TARGETS, start_search: str | None = None) -> int:
+                  targets: dict = TARGETS, start_search: str | None = None, multi_start: int | None = None) -> int:
     from benchmark.body import get_body
     from benchmark.run.catalog import get_profile, load_table_spec
     from benchmark.core.outdir import OutDirLock, check_out_dir
@@ -65,6 +83,7 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
             rule_note = (f", objective.start_search {start_search} (the table spec says "
                          f"{start_search_rule(spec)}: not table1's protocol as committed)")
         spec["objective"]["start_search"] = start_search
+    rule_note += with_multi_start(spec, multi_start)
     profile = get_profile(profile_name or ("full" if device.startswith("cuda") else "quick"), table="table1")
     get_prior_class(prior)
     out_dir = check_out_dir(out)
@@ -158,13 +177,15 @@ def seed_base_units(base_run, out_dir, prior: str, cells=ROBUSTNESS_CELLS) -> li
 
 
 def run_robustness(prior: str, profile_name: str | None = None, device: str = "cpu", out: str = "runs/fit-check",
-                   seed: int = 0, jobs: int | None = None, base_run: str | None = None) -> int:
+                   seed: int = 0, jobs: int | None = None, base_run: str | None = None,
+                   multi_start: int | None = None) -> int:
     """``fit-check --robustness``: ``prior`` on table1's sparsest and densest cell under the
     profile's sequences and rules (the base), then under each probe of :func:`robustness_specs`.
     Prints each cell's MPJPE and how far each probe moves it; exit 1 when a move exceeds
     MAX_MOVE_MM (a number a float perturbation or more steps moves by more measures the optimiser,
     not the prior). ``base_run``: a table1 run folder whose units serve as the base fits
-    (:func:`seed_base_units`)."""
+    (:func:`seed_base_units`). ``multi_start``: check the candidate rule of that many starts
+    (:func:`with_multi_start`) instead of table1's own."""
     from pathlib import Path
 
     from benchmark.body import get_body
@@ -178,6 +199,7 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
         raise ValueError("fit-check --robustness: table1's objective.step_rule is not 'plateau' (protocol v6); "
                          "the longer probe needs the plateau rule")
     spec.pop("paper", None)  # the paper's columns are not this run's grid
+    rule_note = with_multi_start(spec, multi_start)
     profile = get_profile(profile_name or ("full" if device.startswith("cuda") else "quick"), table="table1")
     get_prior_class(prior)
     out_dir = check_out_dir(out)
@@ -206,7 +228,7 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
             steps = int((base[key].get("diagnostics") or {}).get("steps_max") or profile["steps"])
             for name, (s, p) in robustness_specs(spec, profile, steps).items():
                 probes[name][key] = run(name, s, p, key)
-    print(f"\nfit-check --robustness: {prior}, table1 protocol v{spec['protocol_version']}, profile {profile['name']}, "
+    print(f"\nfit-check --robustness: {prior}, table1 protocol v{spec['protocol_version']}{rule_note}, profile {profile['name']}, "
           f"{next(iter(base.values()))['sequences']} sequences; probes: observation moved by {PERTURBATION_M:g} m, "
           f"{LONGER} x the steps each base fit took ({out_dir})")
     print(f"{'cell':<14}{'MPJPE':>9}{'converged':>11}{'steps':>7}{'perturbed':>22}{'longer':>22}  result")
