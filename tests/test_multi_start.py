@@ -4,6 +4,8 @@ sequence keeps the copy with the lowest final objective, and one start is the si
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 
@@ -87,7 +89,7 @@ def test_fit_check_sets_the_candidate_rule_and_says_so():
     from benchmark.run.catalog import load_table_spec
     from benchmark.tools.fit_check import MULTI_START_NOISE, run_robustness, with_multi_start
 
-    spec = load_table_spec("table1")
+    spec = copy.deepcopy(load_table_spec("table1"))  # the loaded spec is shared: never change it in place
     assert "multi_start" not in spec["objective"]  # not a rule of the committed protocol
     assert with_multi_start(spec, None) == "" and "multi_start" not in spec["objective"]
     note = with_multi_start(spec, 4)
@@ -95,3 +97,4 @@ def test_fit_check_sets_the_candidate_rule_and_says_so():
     assert "not table1's protocol as committed" in note
     with pytest.raises(ValueError, match="--multi-start 0"):
         run_robustness("frequency-guided", multi_start=0)
+    assert "multi_start" not in load_table_spec("table1")["objective"]
