@@ -66,7 +66,7 @@ def test_each_sequence_keeps_its_copy_with_the_lowest_objective(anny_body, monke
     _fresh_cache(monkeypatch)
     batch = _walkers(anny_body, frames=4, points=60)
     adapter = make_adapter("sequential-primitives")
-    args = dict(steps=70, lr=0.03, lambda_prior=0.01, device="cpu", loss_vertices=200, facing="observation",
+    args = dict(steps=40, lr=0.03, lambda_prior=0.01, device="cpu", loss_vertices=200, facing="observation",
                 latent_init="mean", start_search="observation",
                 plateau=PlateauRule(window=10, smoothing=2, check_every=5, anneal_steps=5, reductions=1))
     runs = {}
