@@ -1,5 +1,5 @@
 """Several starts per sequence for the encoded priors (``objective.multi_start``, a table1 version 8
-candidate; benchmark.protocols.fit_state.MultiStart): the copies start where the rule says, each
+candidate; benchmark.protocols.multi_start.MultiStart): the copies start where the rule says, each
 sequence keeps the copy with the lowest final objective, and one start is the single-start fit."""
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from benchmark.protocols.completion import fit
-from benchmark.protocols.fit_state import MultiStart, PlateauRule, init_state, select_copies, vary_copies
+from benchmark.protocols.fit_state import PlateauRule, init_state
+from benchmark.protocols.multi_start import MultiStart, select_copies, vary_copies
 from benchmark.protocols.start_search import encoded_start
 from benchmark.run.registry import make_adapter
 from tests.test_start_search import _fresh_cache, _walkers

@@ -31,9 +31,9 @@ import torch
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.facing import FACING_RULES, facing_search, observed_facing
-from benchmark.protocols.fit_state import (FitState, MultiStart, PlateauRule, body_parameters, init_state, optimise,
-                                           optimise_to_plateau, parameter_groups, repeat_batch, select_copies,
-                                           vary_copies)
+from benchmark.protocols.fit_state import (FitState, PlateauRule, body_parameters, init_state, optimise,
+                                           optimise_to_plateau, parameter_groups, repeat_batch)
+from benchmark.protocols.multi_start import MultiStart, select_copies, vary_copies
 from benchmark.protocols.start_search import (ENCODED_START, START_SEARCH_RULES, is_prior_free, prior_free_start,
                                               searched_start)
 from priors.base import FitBatch, PriorAdapter
@@ -73,7 +73,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     convergence. None: ``steps`` steps of cosine decay (versions 1-5).
 
     ``multi_start``: where the start was encoded (``start_search="observation"``, a prior with a
-    motion encoder), fit :class:`~benchmark.protocols.fit_state.MultiStart`'s copies of every
+    motion encoder), fit :class:`~benchmark.protocols.multi_start.MultiStart`'s copies of every
     sequence side by side and keep, per sequence, the one with the lowest objective at the last step;
     the log's ``multi_start`` holds each copy's final objective and the chosen copy. None: one start.
     """

@@ -405,8 +405,8 @@ def plateau_rule(spec: dict):
 
 
 def multi_start_rule(spec: dict):
-    """``objective.multi_start`` (:class:`benchmark.protocols.fit_state.MultiStart`), or None: one start."""
-    from benchmark.protocols.fit_state import MultiStart
+    """``objective.multi_start`` (:class:`benchmark.protocols.multi_start.MultiStart`), or None: one start."""
+    from benchmark.protocols.multi_start import MultiStart
 
     try:
         return MultiStart.from_spec(spec["objective"].get("multi_start"))

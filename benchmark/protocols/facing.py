@@ -15,6 +15,7 @@ from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, init_state,
                                              optimise, repeat_batch, rigid_parameters, set_yaw, subset_batch,
                                              subset_data_term)
+from benchmark.protocols.multi_start import select_copies
 from priors.base import FitBatch, PriorAdapter
 
 
@@ -73,7 +74,7 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
     # the adapter's own per-batch state (e.g. the initial latents its prior term measures from)
     # must be the full batch's when the full fit starts: initialise it last
     probe = init_state(adapter, body, batch, generator, device, search_heading=False, latent_init=latent_init)
-    state = _select(hyp, pick, probe)
+    state = select_copies(hyp, pick, probe)
     return state, {"facing_yaw_rad": [float(y) for y in yaw.view(B, K)[torch.arange(B), best]],
                    "facing_scores_mm": [[round(float(v), 3) for v in row] for row in scores]}
 
@@ -155,21 +156,3 @@ def observed_facing(adapter: PriorAdapter, body, batch: FitBatch, generator: tor
         set_yaw(state, base_root, base_heading, delta)
     return state, {"facing_yaw_rad": [round(float(y), 5) for y in target],
                    "facing_scores_mm": log["facing_scores_mm"], "facing_turn_rad": [round(float(d), 5) for d in delta]}
-
-
-def _select(hyp: FitState, pick: torch.Tensor, like: FitState) -> FitState:
-    """The hypotheses ``pick`` (one per sequence) of ``hyp`` as a fresh leaf state shaped like ``like``."""
-    def take(x, ref):
-        if x is None:
-            return None
-        y = x.detach()[pick].clone()
-        if ref is not None and y.shape != ref.shape:
-            raise ValueError(f"facing search: a variable of shape {tuple(x.shape)} is not batch-first "
-                             f"(expected {tuple(ref.shape)} after selection)")
-        return y.requires_grad_(True)
-
-    latents = {k: take(v, like.latents[k]) for k, v in hyp.latents.items()}
-    return FitState(adapter=like.adapter, latents=latents, shape_param=take(hyp.shape_param, like.shape_param),
-                    obs_t=like.obs_t, window_s=like.window_s, root=take(hyp.root, like.root),
-                    trans=take(hyp.trans, like.trans), heading=take(hyp.heading, like.heading),
-                    offset=take(hyp.offset, like.offset), bounded_shape=like.bounded_shape)

@@ -30,7 +30,7 @@ def with_multi_start(spec: dict, starts: int | None) -> str:
     docs/protocol.md) in the table spec ``spec``; returns the note the report prints ("" for None)."""
     if starts is None:
         return ""
-    from benchmark.protocols.fit_state import MultiStart
+    from benchmark.protocols.multi_start import MultiStart
 
     if isinstance(starts, bool) or not isinstance(starts, int) or starts < 1:
         raise ValueError(f"fit-check: --multi-start {starts!r}: give the number of starts, an integer >= 1")

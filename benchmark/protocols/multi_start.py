@@ -1,0 +1,94 @@
+"""Several starts per sequence (``objective.multi_start``, a table1 version 8 candidate,
+docs/protocol.md), and the copy bookkeeping it shares with the facing search: a state repeated per
+sequence, the copies' starts, and one copy per sequence taken back."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from benchmark.protocols.fit_state import FitState
+
+
+@dataclass(frozen=True)
+class MultiStart:
+    """Several starts per sequence for the priors whose start is encoded (``objective.multi_start``,
+    a table1 version 8 candidate, docs/protocol.md): ``starts`` copies of every sequence are fitted
+    side by side from the encoded start (:func:`benchmark.protocols.start_search.encoded_start`),
+    the fit's own start before it (the prior's mean latents, turned to the facing, the neutral
+    shape), and ``starts - 2`` encoded starts with seeded Gaussian noise of
+    ``noise`` (in the latents' own units: the standard priors' standard deviation) added to their
+    latents; each sequence keeps the copy with the lowest objective at the last step. The encoded
+    copies share the encoded start's rigid parameters and shape."""
+
+    starts: int = 1
+    noise: float = 0.5
+
+    @classmethod
+    def from_spec(cls, value) -> "MultiStart | None":
+        """The rule of an ``objective.multi_start`` mapping; None (one start) when absent."""
+        if value is None:
+            return None
+        if not isinstance(value, dict):
+            raise ValueError(f"objective.multi_start: expected a mapping like {{starts: 4, noise: 0.5}}, got {value!r}")
+        unknown = set(value) - {"starts", "noise"}
+        if unknown:
+            raise ValueError(f"objective.multi_start: unknown key(s) {sorted(unknown)}; known: starts, noise")
+        starts, noise = value.get("starts", 1), value.get("noise", 0.5)
+        if not isinstance(starts, int) or isinstance(starts, bool) or starts < 1 or not float(noise) > 0:
+            raise ValueError(f"objective.multi_start: {value!r}: 'starts' must be an integer >= 1 and 'noise' > 0")
+        return cls(starts=starts, noise=float(noise))
+
+
+def repeat_state(state: FitState, k: int) -> FitState:
+    """Every variable of ``state`` repeated ``k`` times per sequence, hypothesis-major like
+    :func:`repeat_batch` (b0k0, b0k1, ...), as fresh leaves."""
+    rep = lambda x: None if x is None else x.detach().repeat_interleave(k, dim=0).clone().requires_grad_(True)  # noqa: E731
+    return FitState(adapter=state.adapter, latents={n: rep(v) for n, v in state.latents.items()},
+                    shape_param=rep(state.shape_param), obs_t=state.obs_t.repeat_interleave(k, dim=0),
+                    window_s=state.window_s, root=rep(state.root), trans=rep(state.trans), heading=rep(state.heading),
+                    offset=rep(state.offset), bounded_shape=state.bounded_shape)
+
+
+@torch.no_grad()
+def vary_copies(state: FitState, start: FitState, rule: MultiStart, generator: torch.Generator) -> None:
+    """Set the starts of a state of ``rule.starts`` copies per sequence whose copies all hold the
+    encoded start (:func:`benchmark.protocols.start_search.encoded_start` with ``copies``): copy 1
+    takes every variable of ``start`` (batch B: the fit's own start before the encoded one, the
+    prior's mean turned to the facing), copies 2.. the encoded latents plus seeded Gaussian noise of
+    ``rule.noise``; copy 0 stays. In place."""
+    K = rule.starts
+    pairs = [(state.latents[n], start.latents.get(n)) for n in state.latents]
+    pairs += [(getattr(state, n), getattr(start, n)) for n in ("shape_param", "root", "trans", "heading", "offset")]
+    for v, own in pairs:
+        if v is None:
+            continue
+        view = v.view(-1, K, *v.shape[1:])
+        if K > 1 and own is not None and own.shape == view[:, 1].shape:
+            view[:, 1] = own.detach().to(v)
+    if K > 2:
+        for v in state.latents.values():
+            view = v.view(-1, K, *v.shape[1:])
+            noise = torch.randn((view.shape[0], K - 2, *v.shape[1:]), generator=generator, dtype=v.dtype)
+            view[:, 2:] += rule.noise * noise.to(v.device)
+
+
+def select_copies(state: FitState, pick: torch.Tensor, like: FitState) -> FitState:
+    """The copies ``pick`` ((B,) flat indices, one per sequence) of a state of several copies per
+    sequence (the facing search's hypotheses, :func:`vary_copies`' starts) as a fresh leaf state
+    shaped like ``like``."""
+    def take(x, ref):
+        if x is None:
+            return None
+        y = x.detach()[pick].clone()
+        if ref is not None and y.shape != ref.shape:
+            raise ValueError(f"a variable of shape {tuple(x.shape)} is not batch-first "
+                             f"(expected {tuple(ref.shape)} after selection)")
+        return y.requires_grad_(True)
+
+    latents = {k: take(v, like.latents.get(k)) for k, v in state.latents.items()}
+    return FitState(adapter=like.adapter, latents=latents, shape_param=take(state.shape_param, like.shape_param),
+                    obs_t=like.obs_t, window_s=like.window_s, root=take(state.root, like.root),
+                    trans=take(state.trans, like.trans), heading=take(state.heading, like.heading),
+                    offset=take(state.offset, like.offset), bounded_shape=like.bounded_shape)
