@@ -183,3 +183,41 @@ def test_min_steps_keeps_every_sequence_descending():
 def test_bad_reduction_rules_are_refused(bad):
     with pytest.raises(ValueError, match="objective.plateau"):
         PlateauRule.from_spec(bad)
+
+
+def _creep_after_the_first_reduction():
+    """A flat objective until step 30, then one falling by 0.3 % per unit of Adam's step (the
+    optimised variable's gradient is constant, so each step is the sequence's own rate)."""
+    x = torch.zeros(1, requires_grad=True)
+    trace, start = [], []
+
+    def step_loss(step):
+        if step == 30:
+            start.append(x.detach().clone())
+        trace.append(1.0 - 0.003 * (x.detach() - start[0]) if start else torch.ones(1))
+        return -x.sum(), lambda: {}
+
+    return x, trace, step_loss
+
+
+@pytest.mark.parametrize("rate_scaled", [False, True])
+def test_a_rate_scaled_tolerance_does_not_pass_a_fit_creeping_at_its_reduced_rate(rate_scaled):
+    # at 0.3 x the rate the creep is 0.36 % per window: within 0.5 %, not within 0.5 % x 0.3
+    x, trace, step_loss = _creep_after_the_first_reduction()
+    rule = PlateauRule(window=20, tolerance=0.005, smoothing=5, check_every=5, anneal_steps=0, reductions=2,
+                       factor=0.3, rate_scaled=rate_scaled)
+    _, log = optimise_to_plateau("toy", [x], 400, 0.2, 0.1, step_loss, trace, rule)
+    if rate_scaled:
+        assert log["converged"] == [False] and log["stopped"] == "cap" and log["reductions"] == [1]
+        assert log["plateau_decrease"][0] > rule.tolerance * rule.factor
+    else:
+        assert log["converged"] == [True] and log["descent_steps"][0] < 100 and log["reductions"] == [2]
+
+
+def test_rate_scaled_is_read_from_the_spec_and_checked():
+    assert PlateauRule.from_spec({"rate_scaled": True}).rate_scaled
+    assert not PlateauRule.from_spec({}).rate_scaled
+    with pytest.raises(ValueError, match="rate_scaled must be true or false"):
+        PlateauRule.from_spec({"rate_scaled": "yes"})
+    rule = PlateauRule(tolerance=0.01, factor=0.5, rate_scaled=True)
+    assert rule.tolerance_at(torch.tensor([0, 1, 2])).tolist() == pytest.approx([0.01, 0.005, 0.0025])
