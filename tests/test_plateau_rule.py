@@ -221,3 +221,23 @@ def test_rate_scaled_is_read_from_the_spec_and_checked():
         PlateauRule.from_spec({"rate_scaled": "yes"})
     rule = PlateauRule(tolerance=0.01, factor=0.5, rate_scaled=True)
     assert rule.tolerance_at(torch.tensor([0, 1, 2])).tolist() == pytest.approx([0.01, 0.005, 0.0025])
+
+
+def test_fit_check_sets_the_rate_scaled_candidate_and_says_so():
+    """``fit-check --rate-scaled`` judges table1's fits under the candidate rule, says so in its
+    report, and leaves the loaded table spec as committed."""
+    import copy
+
+    from benchmark.run.catalog import load_table_spec
+    from benchmark.tools.fit_check import with_rate_scaled
+
+    spec = copy.deepcopy(load_table_spec("table1"))
+    assert with_rate_scaled(spec, False) == "" and not spec["objective"]["plateau"].get("rate_scaled")
+    note = with_rate_scaled(spec, True)
+    assert spec["objective"]["plateau"]["rate_scaled"] is True and "not table1's protocol as committed" in note
+    assert PlateauRule.from_spec(spec["objective"]["plateau"]).reductions == 2  # the rest of the rule kept
+    assert not load_table_spec("table1")["objective"]["plateau"].get("rate_scaled")
+    cosine = copy.deepcopy(spec)
+    cosine["objective"]["step_rule"] = "cosine"
+    with pytest.raises(ValueError, match="--rate-scaled needs table1's plateau step rule"):
+        with_rate_scaled(cosine, True)

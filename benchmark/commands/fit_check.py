@@ -25,6 +25,9 @@ def add_command(sub) -> None:
     p.add_argument("--multi-start", type=int, default=None, metavar="K",
                    help="fit the encoded priors from K starts each, keeping each sequence's lowest objective: the "
                         "candidate rule objective.multi_start (docs/protocol.md), not table1's protocol as committed")
+    p.add_argument("--rate-scaled", action="store_true",
+                   help="judge each plateau at a reduced rate against the tolerance scaled by that rate: the candidate "
+                        "rule objective.plateau.rate_scaled (docs/protocol.md), not table1's protocol as committed")
 
     p.add_argument("--robustness", action="store_true",
                    help="instead of the targets: fit the prior at table1's sparsest and densest cell, again with the "
@@ -42,13 +45,15 @@ def add_command(sub) -> None:
             if args.start_search is not None:
                 raise ValueError("fit-check: --robustness checks table1's own rules; drop --start-search")
             return run_robustness(prior=args.prior, profile_name=args.profile, device=resolve_device(args.device),
-                                  out=args.out, jobs=args.jobs, base_run=args.base_run, multi_start=args.multi_start)
+                                  out=args.out, jobs=args.jobs, base_run=args.base_run, multi_start=args.multi_start,
+                                  rate_scaled=args.rate_scaled)
         if args.base_run is not None:
             raise ValueError("fit-check: --base-run gives the base fits of --robustness; add --robustness or drop it")
 
         fps = int(args.fps) if float(args.fps).is_integer() else args.fps
         return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,
                              device=resolve_device(args.device), out=args.out, jobs=args.jobs,
-                             start_search=args.start_search, multi_start=args.multi_start)
+                             start_search=args.start_search, multi_start=args.multi_start,
+                             rate_scaled=args.rate_scaled)
 
     p.set_defaults(func=run)

@@ -40,6 +40,20 @@ def with_multi_start(spec: dict, starts: int | None) -> str:
             "committed)")
 
 
+def with_rate_scaled(spec: dict, rate_scaled: bool) -> str:
+    """Set ``objective.plateau.rate_scaled`` (``--rate-scaled``: a candidate rule, docs/protocol.md)
+    in the table spec ``spec``; returns the note the report prints ("" when False)."""
+    if not rate_scaled:
+        return ""
+    from benchmark.protocols.fit_state import PlateauRule
+
+    if str(spec["objective"].get("step_rule", "cosine")) != "plateau":
+        raise ValueError("fit-check: --rate-scaled needs table1's plateau step rule (objective.step_rule: plateau)")
+    spec["objective"]["plateau"] = {**(spec["objective"].get("plateau") or {}), "rate_scaled": True}
+    PlateauRule.from_spec(spec["objective"]["plateau"])
+    return ", objective.plateau.rate_scaled true (not table1's protocol as committed)"
+
+
 def check_cell(cell: dict, targets: dict = TARGETS) -> list[tuple[str, float | None, float, bool]]:
     """(figure, value, target, passed) for each target, from a derived table cell."""
     diag = cell.get("diagnostics") or {}
@@ -55,7 +69,8 @@ def check_cell(cell: dict, targets: dict = TARGETS) -> list[tuple[str, float | N
 
 def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10, profile_name: str | None = None,
                   device: str = "cpu", out: str = "runs/fit-check", seed: int = 0, jobs: int | None = None,
-                  targets: dict = TARGETS, start_search: str | None = None, multi_start: int | None = None) -> int:
+                  targets: dict = TARGETS, start_search: str | None = None, multi_start: int | None = None,
+                  rate_scaled: bool = False) -> int:
     from benchmark.body import get_body
     from benchmark.run.catalog import get_profile, load_table_spec
     from benchmark.core.outdir import OutDirLock, check_out_dir
@@ -83,7 +98,7 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
             rule_note = (f", objective.start_search {start_search} (the table spec says "
                          f"{start_search_rule(spec)}: not table1's protocol as committed)")
         spec["objective"]["start_search"] = start_search
-    rule_note += with_multi_start(spec, multi_start)
+    rule_note += with_multi_start(spec, multi_start) + with_rate_scaled(spec, rate_scaled)
     profile = get_profile(profile_name or ("full" if device.startswith("cuda") else "quick"), table="table1")
     get_prior_class(prior)
     out_dir = check_out_dir(out)
@@ -178,14 +193,15 @@ def seed_base_units(base_run, out_dir, prior: str, cells=ROBUSTNESS_CELLS) -> li
 
 def run_robustness(prior: str, profile_name: str | None = None, device: str = "cpu", out: str = "runs/fit-check",
                    seed: int = 0, jobs: int | None = None, base_run: str | None = None,
-                   multi_start: int | None = None) -> int:
+                   multi_start: int | None = None, rate_scaled: bool = False) -> int:
     """``fit-check --robustness``: ``prior`` on table1's sparsest and densest cell under the
     profile's sequences and rules (the base), then under each probe of :func:`robustness_specs`.
     Prints each cell's MPJPE and how far each probe moves it; exit 1 when a move exceeds
     MAX_MOVE_MM (a number a float perturbation or more steps moves by more measures the optimiser,
     not the prior). ``base_run``: a table1 run folder whose units serve as the base fits
     (:func:`seed_base_units`). ``multi_start``: check the candidate rule of that many starts
-    (:func:`with_multi_start`) instead of table1's own."""
+    (:func:`with_multi_start`) instead of table1's own; ``rate_scaled``: the candidate plateau rule of
+    :func:`with_rate_scaled`."""
     from pathlib import Path
 
     from benchmark.body import get_body
@@ -199,7 +215,7 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
         raise ValueError("fit-check --robustness: table1's objective.step_rule is not 'plateau' (protocol v6); "
                          "the longer probe needs the plateau rule")
     spec.pop("paper", None)  # the paper's columns are not this run's grid
-    rule_note = with_multi_start(spec, multi_start)
+    rule_note = with_multi_start(spec, multi_start) + with_rate_scaled(spec, rate_scaled)
     profile = get_profile(profile_name or ("full" if device.startswith("cuda") else "quick"), table="table1")
     get_prior_class(prior)
     out_dir = check_out_dir(out)
