@@ -28,6 +28,9 @@ def add_command(sub) -> None:
     p.add_argument("--rate-scaled", action="store_true",
                    help="judge each plateau at a reduced rate against the tolerance scaled by that rate: the candidate "
                         "rule objective.plateau.rate_scaled (docs/protocol.md), not table1's protocol as committed")
+    p.add_argument("--optimiser", default=None, choices=("adam", "lbfgs"),
+                   help="lbfgs: the batched L-BFGS on the same objective, each sequence held at its plateau: the "
+                        "candidate rule objective.optimiser (docs/protocol.md), not table1's protocol as committed")
 
     p.add_argument("--robustness", action="store_true",
                    help="instead of the targets: fit the prior at table1's sparsest and densest cell, again with the "
@@ -46,7 +49,7 @@ def add_command(sub) -> None:
                 raise ValueError("fit-check: --robustness checks table1's own rules; drop --start-search")
             return run_robustness(prior=args.prior, profile_name=args.profile, device=resolve_device(args.device),
                                   out=args.out, jobs=args.jobs, base_run=args.base_run, multi_start=args.multi_start,
-                                  rate_scaled=args.rate_scaled)
+                                  rate_scaled=args.rate_scaled, optimiser=args.optimiser)
         if args.base_run is not None:
             raise ValueError("fit-check: --base-run gives the base fits of --robustness; add --robustness or drop it")
 
@@ -54,6 +57,6 @@ def add_command(sub) -> None:
         return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,
                              device=resolve_device(args.device), out=args.out, jobs=args.jobs,
                              start_search=args.start_search, multi_start=args.multi_start,
-                             rate_scaled=args.rate_scaled)
+                             rate_scaled=args.rate_scaled, optimiser=args.optimiser)
 
     p.set_defaults(func=run)

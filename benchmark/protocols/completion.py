@@ -34,6 +34,7 @@ from benchmark.protocols.facing import FACING_RULES, facing_search, observed_fac
 from benchmark.protocols.fit_state import (FitState, PlateauRule, body_parameters, init_state, optimise,
                                            optimise_to_plateau, parameter_groups, repeat_batch)
 from benchmark.protocols.multi_start import MultiStart, select_copies, vary_copies
+from benchmark.protocols.quasi_newton import OPTIMISERS, lbfgs_to_plateau
 from benchmark.protocols.start_search import (ENCODED_START, START_SEARCH_RULES, is_prior_free, prior_free_start,
                                               searched_start)
 from priors.base import FitBatch, PriorAdapter
@@ -46,7 +47,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         callback=None, facing: str = "heading8", shape_lr_scale: float = 1.0,
         points_per_step: int | None = None, latent_init: str = "sample",
         start_search: str = "none", plateau: PlateauRule | None = None,
-        multi_start: MultiStart | None = None) -> tuple[FitState, dict]:
+        multi_start: MultiStart | None = None, optimiser: str = "adam") -> tuple[FitState, dict]:
     """Optimise one batch (see module docstring). Returns the state and a log: ``history`` (the
     logged steps), ``data_trace`` ((steps, B) the data term of every sequence at every step, mm)
     and, with ``facing="search"``, the facing search's choices.
@@ -76,8 +77,17 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     motion encoder), fit :class:`~benchmark.protocols.multi_start.MultiStart`'s copies of every
     sequence side by side and keep, per sequence, the one with the lowest objective at the last step;
     the log's ``multi_start`` holds each copy's final objective and the chosen copy. None: one start.
+
+    ``optimiser``: ``"adam"`` (every table), or ``"lbfgs"`` (a table1 version 8 candidate, with
+    ``plateau`` only): the batched L-BFGS of :mod:`benchmark.protocols.quasi_newton` on the same
+    objective, every variable at once (``shape_lr_scale`` does not apply), each sequence held at its
+    plateau.
     """
     subset = body.loss_vertex_indices(loss_vertices)
+    if optimiser not in OPTIMISERS:
+        raise ValueError(f"fit: unknown optimiser {optimiser!r}; choose one of {', '.join(OPTIMISERS)}")
+    if optimiser == "lbfgs" and plateau is None:
+        raise ValueError("fit: optimiser 'lbfgs' needs the plateau step rule (objective.step_rule: plateau)")
     if facing not in FACING_RULES:
         raise ValueError(f"fit: unknown facing rule {facing!r}; choose one of {', '.join(FACING_RULES)}")
     B, n = batch.batch_size, batch.num_observed
@@ -131,7 +141,10 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
 
     groups = parameter_groups(state, lr, shape_lr_scale)
     plateau_log = {}
-    if plateau is None:
+    if optimiser == "lbfgs":
+        history, plateau_log = lbfgs_to_plateau(adapter.name, state.parameters(), steps, lr, step_loss, objective_trace,
+                                                plateau, other_traces=(trace,), callback=callback)
+    elif plateau is None:
         history = optimise(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, callback=callback)
     else:
         history, plateau_log = optimise_to_plateau(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, objective_trace,

@@ -333,7 +333,7 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
                       loss_vertices=loss_vertex_count(profile), facing=facing_rule(table_spec),
                       shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(table_spec),
                       start_search=start_search_rule(table_spec), plateau=plateau_rule(table_spec),
-                      multi_start=multi_start_rule(table_spec))
+                      multi_start=multi_start_rule(table_spec), optimiser=optimiser_rule(table_spec))
     t1 = time.perf_counter()
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
     sp = profile.get("surface_points", "all")
@@ -385,6 +385,18 @@ def start_search_rule(spec: dict) -> str:
     """How per-frame priors search their start (``objective.start_search``: ``none``, the rule of
     table1 protocol versions 1-3, or ``limbs``: :func:`benchmark.protocols.start_search.limb_start_search`)."""
     return str(spec["objective"].get("start_search", "none"))
+
+
+def optimiser_rule(spec: dict) -> str:
+    """``objective.optimiser``: ``adam`` (every table) or ``lbfgs`` (benchmark/protocols/quasi_newton.py,
+    a table1 version 8 candidate); anything else is refused naming the field."""
+    from benchmark.protocols.quasi_newton import OPTIMISERS
+
+    value = str(spec["objective"].get("optimiser", "adam"))
+    if value not in OPTIMISERS:
+        raise ValueError(f"objective.optimiser: {value!r} is not an optimiser of the completion fit; "
+                         f"choose one of {', '.join(OPTIMISERS)}")
+    return value
 
 
 STEP_RULES = ("cosine", "plateau")  # objective.step_rule: versions 1-5 cosine over the profile's steps; v6 plateau
