@@ -60,8 +60,16 @@ CHAOTIC = {("inbetween", "motion-dvae", "mpjpe_mm"): 20.0, ("inbetween", "motion
 # to 3.9 % (HM-VAE 136.1 -> 141.5 m/s^2), its V2V and MPJPE by under 1.5 mm; reconstruction and
 # in-betweening stayed within their absolute tolerances. The fractions below cover that spread
 # with a margin: a broken fit moves these numbers by far more.
+# The sls smoke golden (made on the AMD EPYC, protocol v4) re-run the other way, on an Intel Xeon
+# with a fresh Anny cache (2026-12-05, the default suite's p0 cell, landmarks only; every
+# fingerprint differs): its 20-step fits moved by up to 14.1 % (HM-VAE MPJPE 98.2 -> 84.4 mm, the
+# structured latent space's Chamfer 105.0 -> 90.7, landmark error 195.2 -> 173.2, no-prior MPJPE
+# 66.3 -> 61.7), 15 of 28 comparisons beyond the 3 mm absolute tolerance. The same fractions as
+# table1's cover it.
 CROSS_MACHINE = {("table1", "chamfer_mm"): 0.25, ("table1", "chamfer_surface_mm"): 0.25, ("table1", "mpjpe_mm"): 0.25,
-                 ("denoise", "accel"): 0.10}
+                 ("denoise", "accel"): 0.10,
+                 ("sls", "chamfer_mm"): 0.25, ("sls", "chamfer_surface_mm"): 0.25, ("sls", "mpjpe_mm"): 0.25,
+                 ("sls", "landmark_mm"): 0.25}
 
 
 def tolerances(spec: dict) -> dict:

@@ -29,10 +29,19 @@ def test_cross_machine_fraction_of_the_golden_value():
 
 
 def test_chaotic_cells_are_per_prior():
-    tol = CHAOTIC[("sls", "motion-dvae", "mpjpe_mm")]
-    assert accepted("sls", _row("mpjpe_mm", 100.0, 100.0 + 0.9 * tol, prior="motion-dvae"))
-    assert not accepted("sls", _row("mpjpe_mm", 100.0, 100.0 + 0.9 * tol, prior="hmvae"))
-    assert not accepted("sls", _row("mpjpe_mm", 100.0, 100.0 + 1.1 * tol, prior="motion-dvae"))
+    tol = CHAOTIC[("inbetween", "motion-dvae", "mpjpe_mm")]
+    assert ("inbetween", "mpjpe_mm") not in CROSS_MACHINE
+    assert accepted("inbetween", _row("mpjpe_mm", 100.0, 100.0 + 0.9 * tol, prior="motion-dvae"))
+    assert not accepted("inbetween", _row("mpjpe_mm", 100.0, 100.0 + 0.9 * tol, prior="hmvae"))
+    assert not accepted("inbetween", _row("mpjpe_mm", 100.0, 100.0 + 1.1 * tol, prior="motion-dvae"))
+
+
+def test_sls_smoke_cross_machine():
+    """The sls smoke golden's measured spread on another CPU (HM-VAE 98.2 -> 84.4 mm) passes; a row
+    that moves by half does not."""
+    assert accepted("sls", _row("mpjpe_mm", 98.24, 84.41, prior="hmvae"))
+    assert accepted("sls", _row("landmark_mm", 195.16, 173.16, prior="structured-latent"))
+    assert not accepted("sls", _row("landmark_mm", 100.0, 150.0, prior="hmvae"))
 
 
 def test_missing_or_failed_rows_are_never_accepted():

@@ -95,6 +95,8 @@ def sequence_diagnostics(data_trace: torch.Tensor, fit_root: torch.Tensor | None
             dec_b = plateau["plateau_decrease"][b]
             d.update(converged=bool(plateau["converged"][b]), plateau_decrease=None if dec_b is None else float(dec_b),
                      steps=int(plateau["steps"]), descent_steps=int(plateau["descent_steps"][b]))
+            if "evaluations" in plateau:  # objective.optimiser lbfgs: the batch's objective evaluations (line searches)
+                d["evaluations"] = int(plateau["evaluations"])
         if fit_root is not None and gt_root is not None:
             root, facing = root_errors(fit_root[b].detach().cpu().numpy(), gt_root[b].detach().cpu().numpy())
             d.update(root_err_deg=round(float(root.mean()), 3), facing_err_deg=round(float(facing.mean()), 3),
