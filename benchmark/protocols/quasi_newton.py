@@ -18,7 +18,8 @@ Each iteration, per sequence:
   (pairs with ``s.y <= 1e-10 * |s| |y|`` are not kept); the first direction, and any that is not
   a descent direction, is the steepest descent scaled so that no variable moves by more than
   ``first_step`` (the fit's learning rate, in the variables' units) at ``t = 1``;
-- a backtracking Armijo search from ``t = 1``: every trial is one batch evaluation (objective and
+- a backtracking Armijo search from ``t = min(1, 2 t')``, ``t'`` the sequence's last accepted step
+  length (1 at the start and after a failed search): every trial is one batch evaluation (objective and
   gradient), a sequence takes the first trial with ``f(x + t d) <= f(x) + 1e-4 t g.d + 1e-6 |f(x)|``
   (the last term: the objective's float32 roundoff, so that a fit at its minimum is not refused
   every step), the others
@@ -148,6 +149,7 @@ def lbfgs_to_plateau(prior_name: str, tensors: list[torch.Tensor], max_steps: in
     decrease = torch.full((B,), float("nan"), dtype=torch.float64)
     stopped_at = torch.full((B,), max_steps, dtype=torch.long)
     failed = torch.zeros(B, dtype=torch.long)
+    t_last = torch.ones(B, dtype=torch.float64, device=x.device)  # each sequence's last accepted step length
     step = 0
     while step < max_steps:
         step += 1
@@ -160,7 +162,7 @@ def lbfgs_to_plateau(prior_name: str, tensors: list[torch.Tensor], max_steps: in
             valid[steepest] = False
             gd = (g * d).sum(-1)
         d[held] = 0.0
-        t = torch.ones(B, dtype=torch.float64, device=x.device)
+        t = (2.0 * t_last).clamp_max(1.0)
         pending = ~held & (gd < 0)
         x_new, g_new, f_new = x.clone(), g.clone(), f.clone()
         new_entries = [e.clone() for e in kept]
@@ -178,6 +180,7 @@ def lbfgs_to_plateau(prior_name: str, tensors: list[torch.Tensor], max_steps: in
             pending &= ~ok
             t = torch.where(pending, t * 0.5, t)
         failed[pending.cpu()] += 1
+        t_last = torch.where(pending, torch.ones_like(t), t)
         s, y = x_new - x, g_new - g
         sy = (s * y).sum(-1)
         good = ~pending & ~held & (sy > CURVATURE_EPS * s.norm(dim=-1) * y.norm(dim=-1))
