@@ -122,3 +122,32 @@ def test_min_steps_holds_no_sequence_before_it():
     tensors, trace, _, step_loss = _problem([1.0])
     _, log = lbfgs_to_plateau("toy", tensors, 1000, 0.03, step_loss, trace, longer)
     assert log["steps"] >= 3 * base["steps"] and log["converged"] == [True]
+
+
+def test_the_completion_fit_runs_under_lbfgs_with_two_starts(anny_body, monkeypatch):
+    """``fit(optimiser="lbfgs")`` on real bodies and an encoded prior, with the multi-start copies:
+    the objective falls, every per-sequence log is the batch's size, the traces hold one entry per
+    iteration; without the plateau rule it is refused."""
+    from benchmark.protocols.completion import fit
+    from benchmark.protocols.multi_start import MultiStart
+    from benchmark.run.registry import make_adapter
+    from tests.test_start_search import _fresh_cache, _walkers
+
+    _fresh_cache(monkeypatch)
+    batch = _walkers(anny_body, frames=4, points=60)
+    adapter = make_adapter("sequential-primitives")
+    args = dict(steps=30, lr=0.03, lambda_prior=0.01, device="cpu", loss_vertices=200, facing="observation",
+                latent_init="mean", start_search="observation")
+    rule = PlateauRule(window=10, smoothing=2, check_every=5, anneal_steps=5)
+    state, info = fit(adapter, anny_body, batch, generator=torch.Generator().manual_seed(0), plateau=rule,
+                      multi_start=MultiStart(starts=2), optimiser="lbfgs", **args)
+    log = info["plateau"]
+    assert log["optimiser"] == "lbfgs" and 0 < log["steps"] <= 30 and log["evaluations"] >= log["steps"]
+    assert len(log["converged"]) == 2 and len(info["multi_start"]["chosen"]) == 2
+    trace = info["data_trace"]
+    assert trace.shape == (log["steps"] + 1, 2) and bool((trace[-1] < trace[0]).all())
+    assert all(v.shape[0] == 2 for v in state.latents.values())
+    with pytest.raises(ValueError, match="needs the plateau step rule"):
+        fit(adapter, anny_body, batch, generator=torch.Generator().manual_seed(0), optimiser="lbfgs", **args)
+    with pytest.raises(ValueError, match="unknown optimiser 'sgd'"):
+        fit(adapter, anny_body, batch, generator=torch.Generator().manual_seed(0), optimiser="sgd", **args)
