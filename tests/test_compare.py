@@ -164,3 +164,19 @@ def test_main_compare_exit_codes_and_report(base, tmp_path):
     (tmp_path / "x.json").write_text("{}")
     with pytest.raises(ValueError, match="x.json: not a table JSON"):
         main_compare(pa, tmp_path / "x.json", [])
+
+
+def test_main_compare_only_the_given_priors(base, tmp_path):
+    """``compare --prior``: a run of one prior against the whole reference table compares that row
+    only; a prior missing from either table is an error naming the file and its rows."""
+    pa, pb = tmp_path / "a.json", tmp_path / "b.json"
+    pa.write_text(json.dumps(base))
+    one = copy.deepcopy(base)
+    one["rows"] = [r for r in one["rows"] if r["prior"] == "p"]
+    pb.write_text(json.dumps(one))
+    assert main_compare(pa, pb, [], out=io.StringIO()) == 1  # q is missing in B
+    out = io.StringIO()
+    assert main_compare(pa, pb, [], out=out, priors=["p"]) == 0
+    assert out.getvalue().rstrip().splitlines()[-1].startswith("OK: 18 cell x metric comparisons, 0 failing")
+    with pytest.raises(ValueError, match=r"b.json: no row for --prior q; its rows: p"):
+        main_compare(pa, pb, [], priors=["q"])

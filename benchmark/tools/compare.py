@@ -251,13 +251,26 @@ def load_table_json(path: str | Path) -> dict:
     return table
 
 
+def only_priors(table: Mapping, priors: Sequence[str], label: str) -> dict:
+    """``table`` with only the rows of ``priors`` (``compare --prior``); a prior the table has no row
+    of raises ValueError naming the file and the rows it has."""
+    have = [r["prior"] for r in table["rows"]]
+    missing = [p for p in priors if p not in have]
+    if missing:
+        raise ValueError(f"{label}: no row for --prior {', '.join(missing)}; its rows: {', '.join(have)}")
+    return {**table, "rows": [r for r in table["rows"] if r["prior"] in priors]}
+
+
 def main_compare(path_a: str | Path, path_b: str | Path, tol_args: Sequence[str] | None = None,
-                 out: TextIO | None = None, only_problems: bool = False) -> int:
+                 out: TextIO | None = None, only_problems: bool = False, priors: Sequence[str] | None = None) -> int:
     """``compare`` command: print the report; return 0 when everything is within tolerance, 1
     otherwise. Bad ``--tol`` strings or unreadable files raise ValueError / FileNotFoundError with
-    a message that names them."""
+    a message that names them. ``priors``: compare only those rows (each must be in both tables),
+    e.g. a run of one prior against a whole reference table."""
     tolerances = parse_tolerances(tol_args)
     a, b = load_table_json(path_a), load_table_json(path_b)
+    if priors:
+        a, b = only_priors(a, priors, str(path_a)), only_priors(b, priors, str(path_b))
     ok, rows = compare_tables(a, b, tolerances, labels=(str(path_a), str(path_b)))
     print(format_report(ok, rows, str(path_a), str(path_b), only_problems=only_problems), end="", file=out or sys.stdout)
     return 0 if ok else 1
