@@ -100,7 +100,8 @@ def lbfgs_to_plateau(prior_name: str, tensors: list[torch.Tensor], max_steps: in
     ``step_loss(step)`` as for :func:`~benchmark.protocols.fit_state.optimise_to_plateau`: it
     returns ``(summed loss, log)`` and appends the (B,) per-sequence objective to ``trace`` (and
     other per-step (B,) values to the lists of ``other_traces``). Line-search trials are taken back
-    out of those lists: each holds one entry per iteration, at the accepted points.
+    out of those lists: each holds one entry per iteration, at the accepted points (and one for the
+    start). The history logs every ``LOG_EVERY``-th iteration's first trial.
 
     Returns the history and ``{"steps": iterations, "evaluations": batch evaluations,
     "descent_steps": (B,) the iteration each sequence was held at, "plateau_decrease": (B,),
