@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from benchmark.protocols.completion import fit
-from benchmark.protocols.fit_state import PlateauRule, init_state
+from benchmark.protocols.fit_state import init_state
+from benchmark.protocols.step_rules import PlateauRule
 from benchmark.protocols.multi_start import MultiStart, select_copies, vary_copies
 from benchmark.protocols.start_search import encoded_start
 from benchmark.run.registry import make_adapter

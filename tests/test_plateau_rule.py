@@ -1,4 +1,4 @@
-"""The step rule of table1 protocol v6 (benchmark.protocols.fit_state.PlateauRule,
+"""The step rule of table1 protocol v6 (benchmark.protocols.step_rules.PlateauRule,
 optimise_to_plateau): a fit stops where its objective has plateaued at the constant learning rate,
 a fit still falling cannot pass, and the verdict reaches the per-sequence diagnostics."""
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from benchmark.core.fit_diagnostics import cell_diagnostics, cell_flagged, sequence_diagnostics
-from benchmark.protocols.fit_state import PlateauRule, optimise, optimise_to_plateau
+from benchmark.protocols.step_rules import PlateauRule, optimise, optimise_to_plateau
 
 
 def _problem(scales, targets=None):

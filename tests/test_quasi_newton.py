@@ -6,7 +6,7 @@ entry per iteration."""
 import pytest
 import torch
 
-from benchmark.protocols.fit_state import PlateauRule, optimise_to_plateau
+from benchmark.protocols.step_rules import PlateauRule, optimise_to_plateau
 from benchmark.protocols.quasi_newton import OPTIMISERS, lbfgs_to_plateau, two_loop
 
 RULE = PlateauRule(window=20, tolerance=1e-4, smoothing=5, check_every=5, anneal_steps=10)

@@ -16,7 +16,7 @@ Every completion-type unit (table1, sls, captured scans) stores, per sequence, i
 - ``converged``: protocol v6-v7 (``objective.step_rule: plateau``): the objective's relative change
   over the plateau rule's window, at a constant rate (v6: the full one; v7: the last reduced one), was within its tolerance
   when the descent stopped (``plateau_decrease``; ``steps``: the steps the fit took, anneal
-  included; :class:`benchmark.protocols.fit_state.PlateauRule`); versions 1-5:
+  included; :class:`benchmark.protocols.step_rules.PlateauRule`); versions 1-5:
   ``data_decrease_last10 <= CONVERGED_MAX_DECREASE`` (a flag a fit whose cosine schedule has
   already shrunk its steps can pass while still far from its minimum).
 
@@ -81,7 +81,7 @@ def sequence_diagnostics(data_trace: torch.Tensor, fit_root: torch.Tensor | None
 
     data_trace: (steps, B) the data term (mm) of every sequence at every step.
     fit_root, gt_root: (B, T, 3, 3) root rotations at the output timestamps, or None (no ground truth).
-    plateau: the log of :func:`benchmark.protocols.fit_state.optimise_to_plateau` (protocol v6), or
+    plateau: the log of :func:`benchmark.protocols.step_rules.optimise_to_plateau` (protocol v6), or
     None (versions 1-5: the last-10 % flag decides ``converged``).
     """
     trace = data_trace.detach().to("cpu", torch.float64).numpy()

@@ -31,12 +31,12 @@ import torch
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.facing import FACING_RULES, facing_search, observed_facing
-from benchmark.protocols.fit_state import (FitState, PlateauRule, body_parameters, init_state, optimise,
-                                           optimise_to_plateau, parameter_groups, repeat_batch)
+from benchmark.protocols.fit_state import FitState, body_parameters, init_state, parameter_groups, repeat_batch
 from benchmark.protocols.multi_start import MultiStart, select_copies, vary_copies
 from benchmark.protocols.quasi_newton import OPTIMISERS, lbfgs_to_plateau
 from benchmark.protocols.start_search import (ENCODED_START, START_SEARCH_RULES, is_prior_free, prior_free_start,
                                               searched_start)
+from benchmark.protocols.step_rules import PlateauRule, optimise, optimise_to_plateau
 from priors.base import FitBatch, PriorAdapter
 
 log = logging.getLogger(__name__)
@@ -69,7 +69,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     ``latent_init``: where the prior's latents start (:func:`initial_latents`): ``"sample"`` (the
     adapter's ``init_latents``) or ``"mean"`` (table1 protocol v3: the prior's mean).
 
-    ``plateau``: the step rule of protocol v6 (:class:`~benchmark.protocols.fit_state.PlateauRule`):
+    ``plateau``: the step rule of protocol v6 (:class:`~benchmark.protocols.step_rules.PlateauRule`):
     ``steps`` is then the cap, and the log's ``plateau`` holds the steps taken and each sequence's
     convergence. None: ``steps`` steps of cosine decay (versions 1-5).
 

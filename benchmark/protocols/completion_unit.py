@@ -404,9 +404,9 @@ STEP_RULES = ("cosine", "plateau")  # objective.step_rule: versions 1-5 cosine o
 
 def plateau_rule(spec: dict):
     """The step rule of ``objective.step_rule`` (protocol v6: ``plateau``, with ``objective.plateau``'s
-    sizes; :class:`benchmark.protocols.fit_state.PlateauRule`), or None for versions 1-5's cosine
+    sizes; :class:`benchmark.protocols.step_rules.PlateauRule`), or None for versions 1-5's cosine
     schedule over the profile's steps."""
-    from benchmark.protocols.fit_state import PlateauRule
+    from benchmark.protocols.step_rules import PlateauRule
 
     obj = spec["objective"]
     schedule = str(obj.get("step_rule", "cosine"))

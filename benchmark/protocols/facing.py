@@ -13,9 +13,9 @@ import torch
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, init_state,
-                                             optimise, repeat_batch, rigid_parameters, set_yaw, subset_batch,
-                                             subset_data_term)
+                                             repeat_batch, rigid_parameters, set_yaw, subset_batch, subset_data_term)
 from benchmark.protocols.multi_start import select_copies
+from benchmark.protocols.step_rules import optimise
 from priors.base import FitBatch, PriorAdapter
 
 

@@ -47,7 +47,8 @@ import roma
 import torch
 
 from benchmark.core.motion_posing import body_float
-from benchmark.protocols.fit_state import FitState, body_parameters, init_state, optimise, set_rigid
+from benchmark.protocols.fit_state import FitState, body_parameters, init_state, set_rigid
+from benchmark.protocols.step_rules import optimise
 from benchmark.core.skeleton import NUM_JOINTS
 from priors.base import FitBatch, InterpolationBaseline, has_motion_encoder
 

@@ -25,7 +25,7 @@ Each iteration, per sequence:
   every step), the others
   halve ``t`` (at most ``max_trials`` trials; a sequence that finds none resets its history and
   stays where it is);
-- the plateau test of :class:`~benchmark.protocols.fit_state.PlateauRule` on the accepted
+- the plateau test of :class:`~benchmark.protocols.step_rules.PlateauRule` on the accepted
   objectives: every ``check_every`` iterations, the relative change over the last ``window``
   iterations (means of ``smoothing`` at each end); within the tolerance the sequence is held (its
   direction is zero from then on) and converged (not before ``min_steps`` iterations: the
@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import torch
 
-from benchmark.protocols.fit_state import LOG_EVERY, PlateauRule
+from benchmark.protocols.step_rules import LOG_EVERY, PlateauRule, check_batch_first, loss_backward
 
 OPTIMISERS = ("adam", "lbfgs")  # objective.optimiser: every table adam; lbfgs a table1 version 8 candidate
 ARMIJO = 1e-4  # the sufficient-decrease constant of the line search
@@ -97,7 +97,7 @@ def lbfgs_to_plateau(prior_name: str, tensors: list[torch.Tensor], max_steps: in
     """The batched L-BFGS of this module's docstring on the leaf tensors ``tensors`` (batch first),
     for at most ``max_steps`` iterations.
 
-    ``step_loss(step)`` as for :func:`~benchmark.protocols.fit_state.optimise_to_plateau`: it
+    ``step_loss(step)`` as for :func:`~benchmark.protocols.step_rules.optimise_to_plateau`: it
     returns ``(summed loss, log)`` and appends the (B,) per-sequence objective to ``trace`` (and
     other per-step (B,) values to the lists of ``other_traces``). Line-search trials are taken back
     out of those lists: each holds one entry per iteration, at the accepted points (and one for the
@@ -117,27 +117,20 @@ def lbfgs_to_plateau(prior_name: str, tensors: list[torch.Tensor], max_steps: in
             _set(tensors, x)
         for p in tensors:
             p.grad = None
-        loss, log = step_loss(step)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"prior {prior_name!r}: non-finite loss at step {step}")
-        loss.backward()
+        _, log = loss_backward(prior_name, step_loss, step)
         evaluations += 1
         entries = [lst.pop() for lst in lists]
         if logged:
             history.append({"step": step, **log()})
         return entries, _grads(tensors, B)
 
-    with torch.no_grad():
-        B = int(tensors[0].shape[0])
-        bad = [tuple(p.shape) for p in tensors if p.dim() == 0 or p.shape[0] != B]
-        if bad:
-            raise ValueError(f"prior {prior_name!r}: the batched L-BFGS needs every optimised variable batch first "
-                             f"({B} sequences); got shapes {bad}")
-        x = _flat([p.detach() for p in tensors], B).double()
+    B = int(tensors[0].shape[0])
+    check_batch_first(prior_name, tensors, B, "the batched L-BFGS")
+    x = _flat([p.detach() for p in tensors], B).double()
     dtype = tensors[0].dtype
     entries, g = evaluate(0, None, True)
     g = g.double()
-    f = entries[0].detach().double().cpu().to(x.device)
+    f = entries[0].detach().double().to(x.device)
     kept = [e.detach().clone() for e in entries]
     for lst, e in zip(lists, kept):
         lst.append(e)

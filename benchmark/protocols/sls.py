@@ -78,7 +78,7 @@ Start search (``objective.start_search``, protocol v4: ``observation``):
 
 Steps (``objective.step_rule``, protocol v4: ``plateau``): one Adam optimiser at ``objective.lr``
 until each sequence's objective (the unweighted sum of its active terms plus lambda_prior x prior)
-plateaus (:class:`benchmark.protocols.fit_state.PlateauRule`, with a floor of 1 under the relative
+plateaus (:class:`benchmark.protocols.step_rules.PlateauRule`, with a floor of 1 under the relative
 change), then at 0.3 x and 0.09 x that sequence's rate until it plateaus again at each (the rule's
 two reductions), then a short cosine anneal to 10 % of each sequence's rate; the profile's steps
 are the cap. Versions 1-3: cosine to 10 % of ``objective.lr`` over the profile's steps.

@@ -11,9 +11,9 @@ import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.protocols.facing import facing_search
-from benchmark.protocols.fit_state import (FitState, PlateauRule, apply_free_rigid, body_parameters, init_state, optimise,
-                                           optimise_to_plateau, parameter_groups)
+from benchmark.protocols.fit_state import FitState, apply_free_rigid, body_parameters, init_state, parameter_groups
 from benchmark.protocols.start_search import START_SEARCH_RULES, is_prior_free, prior_free_start, searched_start
+from benchmark.protocols.step_rules import PlateauRule, optimise, optimise_to_plateau
 from benchmark.protocols.sls_data import Observation
 from priors.base import AnchorDecoder, FitBatch, PriorAdapter
 
@@ -140,7 +140,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
             plateau: PlateauRule | None = None) -> tuple[FitState, dict]:
     """Optimise one batch against its observation (see :mod:`benchmark.protocols.sls`).
 
-    ``plateau``: the step rule of protocol v4 (:class:`~benchmark.protocols.fit_state.PlateauRule`,
+    ``plateau``: the step rule of protocol v4 (:class:`~benchmark.protocols.step_rules.PlateauRule`,
     judged on each sequence's unweighted active data terms plus lambda x prior): ``steps`` is then
     the cap. None: ``steps`` steps of cosine decay (versions 1-3)."""
     lr = float(objective["lr"])

@@ -18,9 +18,10 @@ import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, decode_grid,
-                                              frame_chamfer, init_state, optimise, repeat_batch, rigid_parameters,
-                                              set_rigid, subset_batch)
+                                              frame_chamfer, init_state, repeat_batch, rigid_parameters, set_rigid,
+                                              subset_batch)
 from benchmark.protocols.multi_start import repeat_state
+from benchmark.protocols.step_rules import optimise
 from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encoder
 
 # objective.start_search: "none"; "limbs" (table1 protocol v4): :func:`limb_start_search` for the

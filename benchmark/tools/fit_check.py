@@ -45,7 +45,7 @@ def with_rate_scaled(spec: dict, rate_scaled: bool) -> str:
     in the table spec ``spec``; returns the note the report prints ("" when False)."""
     if not rate_scaled:
         return ""
-    from benchmark.protocols.fit_state import PlateauRule
+    from benchmark.protocols.step_rules import PlateauRule
 
     if str(spec["objective"].get("step_rule", "cosine")) != "plateau":
         raise ValueError("fit-check: --rate-scaled needs table1's plateau step rule (objective.step_rule: plateau)")
@@ -161,7 +161,7 @@ def robustness_specs(spec: dict, profile: dict, base_steps: int) -> dict:
     longer = copy.deepcopy(spec)
     plateau = dict(longer["objective"].get("plateau") or {})
     if int(plateau.get("reductions", 0)):
-        from benchmark.protocols.fit_state import PlateauRule
+        from benchmark.protocols.step_rules import PlateauRule
 
         plateau["min_steps"] = LONGER * int(base_steps) - PlateauRule.from_spec(plateau).anneal_steps
     else:
