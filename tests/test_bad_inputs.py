@@ -222,6 +222,28 @@ def _(tmp, mp):
     return ["run", "table1", "--prior", "no-prior", "--data", str(folder), "--out", str(tmp / "o")]
 
 
+@case("--data .npz cut short", "run", "cut.npz", "300 bytes are not a zip archive", "cut short")
+def _(tmp, mp):
+    def cut(path):
+        motion_file(tmp / "whole.npz")
+        truncated_copy(tmp / "whole.npz", path, 300)
+
+    folder = data_folder(tmp, {"cut.npz": cut})
+    return ["run", "table1", "--prior", "no-prior", "--data", str(folder), "--out", str(tmp / "o")]
+
+
+@case("--data AMASS file with NaN poses", "run", "gaps.npz", "field 'poses'", "non-finite", "in 2 frames (the first: [3, 4])", "trim the sequence")
+def _(tmp, mp):
+    def gaps(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        poses = np.zeros((130, 156))
+        poses[3:5] = np.nan
+        np.savez(path, poses=poses, trans=np.zeros((130, 3)), mocap_framerate=np.array(30.0), betas=np.zeros(16))
+
+    folder = data_folder(tmp, {"gaps.npz": gaps})
+    return ["run", "table1", "--prior", "no-prior", "--data", str(folder), "--out", str(tmp / "o")]
+
+
 @case("--data AMASS file with keys pose/transl", "run", "bad.npz", "'pose' / 'transl' are not AMASS names")
 def _(tmp, mp):
     folder = data_folder(tmp, {"bad.npz": amass_pose_transl})

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmark.core.safe_loading import unsafe_file_error
+from benchmark.core.safe_loading import npz_read_error, unsafe_file_error
 
 REQUIRED_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
 MODEL_TYPES = {24: "smpl", 52: "smplh", 55: "smplx"}  # number of joints -> model type
@@ -239,8 +239,8 @@ def read_model_keys(path: str | Path, keys=REQUIRED_KEYS) -> tuple[dict, list[st
         try:
             archive = np.load(path, allow_pickle=False)
         except Exception as exc:  # not a zip (or truncated): numpy's message names neither the file nor the fix
-            raise ValueError(f"{path}: not a readable .npz body-model file ({type(exc).__name__}); the file is "
-                             "truncated or not an .npz: download the model again") from None
+            raise ValueError(f"{path}: not a readable .npz body-model file ({npz_read_error(path, exc)}); "
+                             "download the model again") from None
         if not hasattr(archive, "files"):
             raise ValueError(f"{path}: holds a single array, not an .npz archive of named keys; download the model again")
         with archive:

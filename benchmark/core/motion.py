@@ -73,10 +73,14 @@ def _validate(poses, trans, timestamps, shape, where: str) -> None:
     for name, x in named:
         bad = ~torch.isfinite(x)
         if bad.any():
-            frames = torch.nonzero(bad.reshape(x.shape[0], -1).any(-1)).flatten()[:5].tolist()
+            rows = torch.nonzero(bad.reshape(x.shape[0], -1).any(-1)).flatten()
+            unit = "frame" if name != "shape" else "index"
+            fix = (f"; drop or repair those {unit}s (a capture's gaps are often NaN: trim the sequence to the frames "
+                   "that hold values, or fill them) and save the file again" if name != "shape" else
+                   "; give finite shape coefficients")
             raise ValueError(
-                f"{where}: field {name!r} has {int(bad.sum())} non-finite values (NaN/inf), "
-                f"first at index {frames}"
+                f"{where}: field {name!r} has {int(bad.sum())} non-finite values (NaN/inf) in {rows.numel()} "
+                f"{unit}{'s' if rows.numel() != 1 else ''} (the first: {rows[:5].tolist()}){fix}"
             )
     if T > 1:
         dt = timestamps[1:] - timestamps[:-1]
@@ -121,7 +125,7 @@ class Motion:
             raise TypeError(f"Motion: field 'source' must be a str, got {type(self.source).__name__}")
         if not isinstance(self.meta, dict):
             raise TypeError(f"Motion: field 'meta' must be a dict, got {type(self.meta).__name__}")
-        _validate(self.poses, self.trans, self.timestamps, self.shape, "Motion")
+        _validate(self.poses, self.trans, self.timestamps, self.shape, f"Motion ({self.source})" if self.source else "Motion")
 
     # ------------------------------------------------------------------ properties
     @property

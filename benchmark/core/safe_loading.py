@@ -211,3 +211,24 @@ def torch_load_weights(file: str | Path, fix: str = STATE_DICT_FIX) -> object:
     """``torch.load(file, map_location="cpu", weights_only=True)`` with :class:`UnsafeFileError`
     for a file that refers to anything ``weights_only`` does not allow."""
     return torch_load_with_stand_ins(file, None, fix)[0]
+
+
+def npz_read_error(file: str | Path, exc: BaseException) -> str:
+    """Why ``np.load(file, allow_pickle=False)`` failed, in words that fit the file.
+
+    numpy reads any file that is not a zip archive as a single array, and one whose bytes are not
+    an ``.npy`` header either as a pickle, which ``allow_pickle=False`` refuses: so a truncated
+    download, or a text or ``.ply`` file renamed ``.npz``, is reported as "contains pickled (object)
+    data", which sends a user looking for a pickle that is not there."""
+    path = Path(file)
+    try:
+        size = path.stat().st_size
+        is_zip = zipfile.is_zipfile(path)
+    except OSError as err:
+        return f"cannot be read ({err.strerror or err})"
+    if size == 0:
+        return "is empty (0 bytes)"
+    if not is_zip:
+        return (f"its {size} bytes are not a zip archive, and a .npz is a zip of .npy arrays: the file is cut short "
+                "or is another format named .npz")
+    return f"{type(exc).__name__}: {exc}"

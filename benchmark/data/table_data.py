@@ -8,6 +8,7 @@ import logging
 from pathlib import Path
 
 from benchmark.core.motion import Motion, shape_for_body
+from benchmark.core.safe_loading import npz_read_error
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +39,7 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
                 with np.load(f, allow_pickle=False) as npz:
                     keys = set(npz.files)
             except Exception as exc:  # not a zip, a pickle, truncated...
-                raise ValueError(f"--data {data}: {f} is not a readable .npz file ({type(exc).__name__}: {exc}); "
+                raise ValueError(f"--data {data}: {f} is not a readable .npz file ({npz_read_error(f, exc)}); "
                                  "remove it from the folder or re-export it (python -m benchmark data convert)") from None
             try:
                 m = load_amass(f) if "mocap_framerate" in keys or "mocap_frame_rate" in keys else Motion.load(f)

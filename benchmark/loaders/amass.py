@@ -23,6 +23,7 @@ body model, not to the harness's default body.
 from __future__ import annotations
 
 import fnmatch
+import zipfile
 import math
 from functools import lru_cache
 from pathlib import Path
@@ -35,6 +36,7 @@ from benchmark.core.frames import Z_UP_TO_Y_UP
 from benchmark.core.motion import Motion
 from benchmark.core.plausibility import check_motion
 from benchmark.core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from benchmark.core.safe_loading import npz_read_error
 
 FRAME_RATE_TABLE = Path(__file__).with_name("frame_rates.yaml")
 
@@ -94,10 +96,10 @@ def load_amass(
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except ValueError as e:
-        raise ValueError(f"{path}: cannot read without pickle ({e}); AMASS files hold plain arrays") from e
     except Exception as e:
-        raise ValueError(f"{path}: not a readable .npz file ({e})") from e
+        if zipfile.is_zipfile(path) and isinstance(e, ValueError):
+            raise ValueError(f"{path}: cannot read without pickle ({e}); AMASS files hold plain arrays") from e
+        raise ValueError(f"{path}: not a readable .npz file ({npz_read_error(path, e)})") from e
 
     has_pose = "poses" in data or ("root_orient" in data and "pose_body" in data)
     if path.name.endswith("_shape.npz") or (not has_pose and "betas" in data):

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmark.core.motion import Motion, shape_for_body
+from benchmark.core.safe_loading import npz_read_error
 
 
 def detect_format(path) -> str:
@@ -30,7 +31,7 @@ def detect_format(path) -> str:
             keys = set(z.files)
             pose_shape = z["poses"].shape if "poses" in keys else None
     except Exception as e:
-        raise ValueError(f"{path}: not a readable .npz file without pickle ({e})") from e
+        raise ValueError(f"{path}: not a readable .npz file without pickle ({npz_read_error(path, e)})") from e
     if keys & {"mocap_framerate", "mocap_frame_rate"}:
         return "amass"
     if pose_shape is not None and len(pose_shape) == 3 and ("timestamps" in keys or "fps" in keys):

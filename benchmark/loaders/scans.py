@@ -39,6 +39,7 @@ import torch
 from benchmark.data.observations import PointCloudSequence
 from benchmark.core.plausibility import (check_scan_coordinates, check_scan_frame_size, check_scan_points,
                                     check_timestamps)
+from benchmark.core.safe_loading import npz_read_error
 from benchmark.core.surface_sampling import sample_surface
 
 log = logging.getLogger(__name__)
@@ -91,7 +92,7 @@ def read_scan_frame(path: str | Path, sample: int | None = None,
                 points = data["points"] if "points" in keys else None
         except Exception as exc:  # not a zip, pickled content, truncated file
             raise ValueError(
-                f"{path}: unreadable npz file ({exc}); re-export it with np.savez(path, points=...)"
+                f"{path}: unreadable npz file ({npz_read_error(path, exc)}); re-export it with np.savez(path, points=...)"
             ) from exc
         if points is None:
             raise ValueError(
