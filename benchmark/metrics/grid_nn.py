@@ -227,7 +227,56 @@ def _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, pts, r0, max_cel
     return bi, best
 
 
-def _query(queries, qlengths, order, max_cells, hints, points, geom, cell_off, starts, index, sorted_pts, out):
+def _nearest_from(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, pts, s0):
+    """(sorted position, squared distance) of the nearest grid point to (qx, qy, qz), given a
+    point of the grid (sorted position ``s0``, e.g. the query's answer at the previous optimiser
+    step). The nearest point lies in the cube of half-side that point's distance (plus a rounding
+    slack), so one scan of the cells meeting it, each skipped when its box is farther than the best
+    point so far (which starts as ``s0``, not as nothing), is conclusive. A point replaces the best
+    only when strictly closer."""
+    slack = 1e-9 * h + 1e-12
+    best = _sqdist(pts, s0, qx, qy, qz)
+    bi = s0
+    rr = math.sqrt(best) + slack
+    a0, b0 = _cell_range(qx - rr, qx + rr, ox, h, d0)
+    a1, b1 = _cell_range(qy - rr, qy + rr, oy, h, d1)
+    a2, b2 = _cell_range(qz - rr, qz + rr, oz, h, d2)
+    for j0 in range(a0, b0 + 1):
+        g0 = max(max(ox + j0 * h - qx, qx - (ox + (j0 + 1) * h)) - slack, 0.0)
+        g0 = g0 * g0
+        if g0 >= best:
+            continue
+        for j1 in range(a1, b1 + 1):
+            g1 = max(max(oy + j1 * h - qy, qy - (oy + (j1 + 1) * h)) - slack, 0.0)
+            g1 = g0 + g1 * g1
+            if g1 >= best:
+                continue
+            for j2 in range(a2, b2 + 1):
+                g2 = max(max(oz + j2 * h - qz, qz - (oz + (j2 + 1) * h)) - slack, 0.0)
+                if g1 + g2 * g2 >= best:
+                    continue
+                c = c0 + (j0 * d1 + j1) * d2 + j2
+                for s in range(starts[c], starts[c + 1]):
+                    d = _sqdist(pts, s, qx, qy, qz)
+                    if d < best:
+                        best = d
+                        bi = s
+    return bi, best
+
+
+def _positions(index, lengths):
+    """The inverse of ``index``: per element (one after another), the sorted position of each of
+    its points."""
+    where = np.empty(index.shape[0], dtype=np.int64)
+    base = 0
+    for n in range(lengths.shape[0]):
+        for s in range(base, base + lengths[n]):
+            where[base + index[s]] = s
+        base += lengths[n]
+    return where
+
+
+def _query(queries, qlengths, order, max_cells, hints, where, lengths, geom, cell_off, starts, index, sorted_pts, out):
     """``out[n, i]``: the index (in element n's valid prefix) of the nearest grid point of each valid
     ``queries[n, i]``, taken in the order ``order[n, :qlengths[n]]`` (a permutation of the valid
     positions: queries near each other one after another touch the same cells); padded positions
@@ -236,6 +285,7 @@ def _query(queries, qlengths, order, max_cells, hints, points, geom, cell_off, s
     bounds the search. A query :func:`_nearest` leaves (far from every point) gets
     ``UNRESOLVED``; returns how many did."""
     far = 0
+    base = 0
     for n in range(queries.shape[0]):
         ox, oy, oz, h = geom[n, 0], geom[n, 1], geom[n, 2], geom[n, 3]
         d0, d1, d2 = int(geom[n, 4]), int(geom[n, 5]), int(geom[n, 6])
@@ -246,9 +296,7 @@ def _query(queries, qlengths, order, max_cells, hints, points, geom, cell_off, s
             qx, qy, qz = queries[n, i, 0], queries[n, i, 1], queries[n, i, 2]
             j = hints[n, i]
             if j >= 0:
-                dx, dy, dz = points[n, j, 0] - qx, points[n, j, 1] - qy, points[n, j, 2] - qz
-                s, d = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts,
-                                math.sqrt(dx * dx + dy * dy + dz * dz), max_cells, True)
+                s, d = _nearest_from(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, where[base + j])
             else:
                 s, d = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, r, max_cells, False)
             if s < 0:
@@ -257,6 +305,7 @@ def _query(queries, qlengths, order, max_cells, hints, points, geom, cell_off, s
             else:
                 out[n, i] = index[s]
                 r = max(1.25 * math.sqrt(d), 1e-3 * h)  # the next query (in spatial order) starts from this one's distance
+        base += lengths[n]
     return far
 
 
@@ -354,6 +403,8 @@ if HAVE_NUMBA:
     _sqdist = _inline(_sqdist)
     _cell_range = _inline(_cell_range)
     _nearest = _inline(_nearest)
+    _nearest_from = _inline(_nearest_from)
+    _positions = _jit(_positions)
     _query = _jit(_query)
     _build_candidates = _jit(_build_candidates)
     _cell_candidates = _jit(_cell_candidates)
@@ -377,6 +428,7 @@ class PointGrids:
         self.points = points
         self._trees = {}
         self._grids = _build(points, lengths, MAX_CELLS_PER_POINT, POINTS_PER_CELL)
+        self._where = None  # each point's sorted position (for hints), made on first need
         self._cand = None
         if candidates:
             self._cand = _build_candidates(self._grids[0], lengths, CANDIDATE_CELLS_PER_POINT)
@@ -413,7 +465,9 @@ class PointGrids:
             if hints.shape != queries.shape[:2] or bool((hints >= self.lengths[:, None]).any()):
                 raise ValueError(f"PointGrids.nearest: hints must be ({queries.shape[0]}, {queries.shape[1]}) indices "
                                  f"below each element's length (or -1); got shape {hints.shape}.")
-            far = _query(queries, qlengths, order, MAX_CELLS, hints, self.points, *self._grids, out)
+            if self._where is None:
+                self._where = _positions(self._grids[3], self.lengths)
+            far = _query(queries, qlengths, order, MAX_CELLS, hints, self._where, self.lengths, *self._grids, out)
         else:
             self._pool, self._used, far = _query_cached(queries, qlengths, order, MAX_CELLS, *self._grids, *self._cand,
                                                         self._pool, self._used, out)
