@@ -94,6 +94,10 @@ def test_hints_do_not_change_answers():
     assert np.array_equal(grids.nearest(queries, qlengths, hints=plain), plain)
     with pytest.raises(ValueError, match="hints must be"):
         grids.nearest(queries, qlengths, hints=np.full((2, 900), 400))
+    far = queries * 40.0  # far from every point: the hint's cube spans the whole grid
+    far_plain = grids.nearest(far, qlengths)
+    _check(points, lengths, far, qlengths, far_plain)
+    assert np.array_equal(grids.nearest(far, qlengths, hints=random_hints), far_plain)
 
 
 def test_errors():
