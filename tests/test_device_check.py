@@ -1,0 +1,52 @@
+"""device-check: each (table, prior) runs on its own, a failure is recorded with where it happened and
+the others still run; the report compares what ran with the committed smoke tables."""
+
+from __future__ import annotations
+
+import json
+
+from benchmark.cli import main
+from benchmark.tools import device_check
+
+
+def test_pair_order_runs_no_prior_everywhere_first():
+    order = device_check.pair_order(["table1", "sls"], {"table1": ["no-prior", "hmvae"], "sls": ["hmvae", "no-prior"]})
+    assert order == [("table1", "no-prior"), ("sls", "no-prior"), ("table1", "hmvae"), ("sls", "hmvae")]
+
+
+def test_failures_are_collected_and_the_rest_runs(tmp_path, monkeypatch, capsys):
+    from benchmark.run import table_run
+
+    real = table_run.run_table
+
+    def flaky(spec, profile, priors, *args, **kwargs):
+        if spec["name"] == "denoise":  # as a device mix-up does, deep inside the harness
+            def deep():
+                raise RuntimeError("Expected all tensors to be on the same device, but found at least two devices")
+            deep()
+        return real(spec, profile, priors, *args, **kwargs)
+
+    monkeypatch.setattr(table_run, "run_table", flaky)
+    out = tmp_path / "dc"
+    code = main(["device-check", "--device", "cpu", "--table", "inbetween", "--table", "denoise",
+                 "--prior", "no-prior", "--prior", "slerp", "--out", str(out)])
+    assert code == 1
+    report = json.loads((out / "device-check.json").read_text())
+    status = {(p["table"], p["prior"]): p["status"] for p in report["pairs"]}
+    assert status == {("inbetween", "no-prior"): "ok", ("denoise", "no-prior"): "failed",
+                      ("inbetween", "slerp"): "ok", ("denoise", "slerp"): "failed"}
+    bad = next(p for p in report["pairs"] if p["status"] == "failed")
+    assert bad["error"] == "RuntimeError" and "same device" in bad["message"]
+    assert "(deep)" in bad["innermost_frame"] and "device_check.py" in bad["project_frame"]
+    ok = next(p for p in report["pairs"] if p["status"] == "ok")
+    assert "mpjpe_mm" in ok["against_smoke_golden"]  # compared with results/inbetween.smoke.json
+    md = (out / "device-check.md").read_text()
+    assert "| denoise | no-prior | failed |" in md and "same device" in md
+    assert "2 of 4 pairs ran, 2 failed" in capsys.readouterr().out
+
+
+def test_budget_stops_new_pairs(tmp_path):
+    report = device_check.check_device("cpu", ["inbetween"], ["no-prior", "slerp"], tmp_path / "dc",
+                                       tmp_path / "no-results", budget_s=-1.0, log=lambda *a: None)
+    assert [p["status"] for p in report["pairs"]] == ["not run (budget spent)"] * 2
+    assert not device_check.failed(report)
