@@ -166,7 +166,7 @@ def _cell_range(lo, hi, o, h, d):
     return a, b
 
 
-def _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, pts, r0, max_cells, known):
+def _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, pts, r0, max_cells, known, best0, bi0):
     """(sorted position, squared distance) of the nearest grid point to (qx, qy, qz).
 
     Scans the cells that meet the cube of half-side R about the query (R = ``r0`` first), skipping
@@ -174,12 +174,14 @@ def _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, pts, r0, max_cel
     is within R (every point outside the scanned cells lies outside the cube, farther than R).
     Otherwise R becomes the best distance (that cube holds the nearest point) or doubles while no
     point was found. ``known``: some point is known to lie within ``r0`` (a hint), so the first
-    cube is the last. Returns (-1, inf) instead when the cube would span more than ``max_cells``
+    cube is the last. ``bi0`` >= 0: that point's sorted position, and ``best0`` its squared
+    distance: the search starts from it as its best point, so the cells farther than it are
+    skipped from the first (else -1 and inf). Returns (-1, inf) instead when the cube would span more than ``max_cells``
     cells with no point found yet (the query is far from every point: the caller asks a KD-tree).
     """
     slack = 1e-9 * h + 1e-12
-    best = math.inf
-    bi = -1
+    best = best0
+    bi = bi0
     r = r0
     conclusive = known
     p0, q0, p1, q1, p2, q2 = 1, 0, 1, 0, 1, 0  # the block scanned so far (empty)
@@ -227,43 +229,6 @@ def _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, pts, r0, max_cel
     return bi, best
 
 
-def _nearest_from(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, pts, s0):
-    """(sorted position, squared distance) of the nearest grid point to (qx, qy, qz), given a
-    point of the grid (sorted position ``s0``, e.g. the query's answer at the previous optimiser
-    step). The nearest point lies in the cube of half-side that point's distance (plus a rounding
-    slack), so one scan of the cells meeting it, each skipped when its box is farther than the best
-    point so far (which starts as ``s0``, not as nothing), is conclusive. A point replaces the best
-    only when strictly closer."""
-    slack = 1e-9 * h + 1e-12
-    best = _sqdist(pts, s0, qx, qy, qz)
-    bi = s0
-    rr = math.sqrt(best) + slack
-    a0, b0 = _cell_range(qx - rr, qx + rr, ox, h, d0)
-    a1, b1 = _cell_range(qy - rr, qy + rr, oy, h, d1)
-    a2, b2 = _cell_range(qz - rr, qz + rr, oz, h, d2)
-    for j0 in range(a0, b0 + 1):
-        g0 = max(max(ox + j0 * h - qx, qx - (ox + (j0 + 1) * h)) - slack, 0.0)
-        g0 = g0 * g0
-        if g0 >= best:
-            continue
-        for j1 in range(a1, b1 + 1):
-            g1 = max(max(oy + j1 * h - qy, qy - (oy + (j1 + 1) * h)) - slack, 0.0)
-            g1 = g0 + g1 * g1
-            if g1 >= best:
-                continue
-            for j2 in range(a2, b2 + 1):
-                g2 = max(max(oz + j2 * h - qz, qz - (oz + (j2 + 1) * h)) - slack, 0.0)
-                if g1 + g2 * g2 >= best:
-                    continue
-                c = c0 + (j0 * d1 + j1) * d2 + j2
-                for s in range(starts[c], starts[c + 1]):
-                    d = _sqdist(pts, s, qx, qy, qz)
-                    if d < best:
-                        best = d
-                        bi = s
-    return bi, best
-
-
 def _positions(index, lengths):
     """The inverse of ``index``: per element (one after another), the sorted position of each of
     its points."""
@@ -296,9 +261,13 @@ def _query(queries, qlengths, order, max_cells, hints, where, lengths, geom, cel
             qx, qy, qz = queries[n, i, 0], queries[n, i, 1], queries[n, i, 2]
             j = hints[n, i]
             if j >= 0:
-                s, d = _nearest_from(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, where[base + j])
+                s0 = where[base + j]  # the previous answer: its distance bounds the search, and it is the best so far
+                d = _sqdist(sorted_pts, s0, qx, qy, qz)
+                s, d = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, math.sqrt(d), max_cells,
+                                True, d, s0)
             else:
-                s, d = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, r, max_cells, False)
+                s, d = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, r, max_cells, False,
+                                math.inf, -1)
             if s < 0:
                 out[n, i] = UNRESOLVED
                 far += 1
@@ -322,7 +291,8 @@ def _cell_candidates(n, c, j0, j1, j2, cgeom, geom, cell_off, starts, sorted_pts
     d0, d1, d2 = int(geom[n, 4]), int(geom[n, 5]), int(geom[n, 6])
     c0 = cell_off[n]
     cx, cy, cz = lx + 0.5 * hc, ly + 0.5 * hc, lz + 0.5 * hc
-    s_best, _ = _nearest(cx, cy, cz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, 0.5 * h, 1 << 62, False)
+    s_best, _ = _nearest(cx, cy, cz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, 0.5 * h, 1 << 62, False,
+                         math.inf, -1)
     px, py, pz = sorted_pts[s_best, 0], sorted_pts[s_best, 1], sorted_pts[s_best, 2]
     fx = max(abs(px - lx), abs(px - ux))
     fy = max(abs(py - ly), abs(py - uy))
@@ -373,7 +343,8 @@ def _query_cached(queries, qlengths, order, max_cells, geom, cell_off, starts, i
             j1 = int(math.floor((qy - gy) / hc))
             j2 = int(math.floor((qz - gz) / hc))
             if j0 < 0 or j0 >= e0 or j1 < 0 or j1 >= e1 or j2 < 0 or j2 >= e2:
-                s, _ = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, 0.5 * h, max_cells, False)
+                s, _ = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, 0.5 * h, max_cells, False,
+                                math.inf, -1)
                 if s < 0:
                     out[n, i] = UNRESOLVED
                     far += 1
@@ -403,7 +374,6 @@ if HAVE_NUMBA:
     _sqdist = _inline(_sqdist)
     _cell_range = _inline(_cell_range)
     _nearest = _inline(_nearest)
-    _nearest_from = _inline(_nearest_from)
     _positions = _jit(_positions)
     _query = _jit(_query)
     _build_candidates = _jit(_build_candidates)
