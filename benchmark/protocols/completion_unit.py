@@ -54,8 +54,8 @@ class CompletionData:
                                noise_std=float(d.get("scan_noise_std", 0.0)), seed=capture_seed, duration=window)
         out_fps = float(self.spec["output_fps"])
         n_out = int(round(window * out_fps))
-        rel = torch.arange(n_out, dtype=torch.float64) / out_fps
-        t0 = scans.timestamps[:, :1]
+        t0 = scans.timestamps[:, :1]  # on the body's device, as every tensor make_scans returns
+        rel = torch.arange(n_out, dtype=torch.float64, device=t0.device) / out_fps
         out_abs = t0 + rel[None]
         gt_out = gt.at(out_abs)
         g = torch.Generator().manual_seed(stable_seed("gt-scan", self.seed, *sequence_ids))
@@ -172,7 +172,7 @@ def incident_faces(faces: torch.Tensor, n_verts: int) -> torch.Tensor:
     counts = torch.bincount(faces.reshape(-1), minlength=n_verts)
     width = int(counts.max())
     starts = torch.cumsum(counts, 0) - counts
-    slot = torch.arange(width)
+    slot = torch.arange(width, device=faces.device)
     idx = starts[:, None] + slot[None]
     valid = slot[None] < counts[:, None]
     return torch.where(valid, (order // 3)[idx.clamp_max(order.numel() - 1)], torch.full_like(idx, F))
