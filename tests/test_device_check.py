@@ -41,7 +41,7 @@ def test_failures_are_collected_and_the_rest_runs(tmp_path, monkeypatch, capsys)
     ok = next(p for p in report["pairs"] if p["status"] == "ok")
     assert "mpjpe_mm" in ok["against_smoke_golden"]  # compared with results/inbetween.smoke.json
     md = (out / "device-check.md").read_text()
-    assert "| denoise | no-prior | failed |" in md and "same device" in md
+    assert "| denoise | no-prior | failed |" in md and "same device" in md and "peak GiB" in md
     assert "2 of 4 pairs ran, 2 failed" in capsys.readouterr().out
 
 

@@ -7,7 +7,8 @@ message and the innermost frames of the project (``benchmark/``, ``priors/``) an
 it failed in. A pair that runs is compared with the committed smoke table (``results/TABLE.smoke.json``),
 largest difference per metric, so a device that runs but computes something else is seen too
 (another device moves the smoke numbers by the cross-machine spread of ``docs/testing.md``: up to
-about 25 % of a 20-step fit, so this is a report, not a pass/fail test).
+about 25 % of a 20-step fit, so this is a report, not a pass/fail test). On CUDA each pair also
+records the device memory it peaked at.
 
 Order: ``no-prior`` on every table first (the harness's own paths), then the other priors, table1
 first. ``budget_s`` stops starting new pairs once it is spent; those are reported as not run.
@@ -111,6 +112,7 @@ def check_device(device: str, tables: list[str], priors: list[str] | None, out: 
             report["pairs"].append(entry)
             continue
         t0 = time.monotonic()
+        _reset_peak(device)
         try:
             result = run_table(specs[table], get_profile("smoke", table=table), [prior], body, device, seed,
                                out / table / prior, backend_options={"jobs": 1})
@@ -119,13 +121,29 @@ def check_device(device: str, tables: list[str], priors: list[str] | None, out: 
             log(f"{table:15s} {prior:22s} FAILED after {time.monotonic() - t0:.0f} s: {entry['error']}: {entry['message'][:160]}")
             log(f"{'':38s} at {entry['project_frame'] or entry['innermost_frame']}")
         else:
-            entry.update(status="ok", seconds=round(time.monotonic() - t0, 1),
+            entry.update(status="ok", seconds=round(time.monotonic() - t0, 1), peak_gib=_peak_gib(device),
                          against_smoke_golden=golden_differences(result["table"], results_dir / f"{table}.smoke.json", prior))
             log(f"{table:15s} {prior:22s} ok in {entry['seconds']:.0f} s")
         report["pairs"].append(entry)
     report["seconds"] = round(time.monotonic() - start, 1)
     _write(report, out)
     return report
+
+
+def _reset_peak(device: str) -> None:
+    import torch
+
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats(torch.device(device))
+
+
+def _peak_gib(device: str) -> float | None:
+    """The device memory the pair's run peaked at (GiB), for sizing the full profile's batches; None on the CPU."""
+    import torch
+
+    if not device.startswith("cuda"):
+        return None
+    return round(torch.cuda.max_memory_allocated(torch.device(device)) / 2**30, 2)
 
 
 def failed(report: dict) -> bool:
@@ -141,8 +159,8 @@ def format_markdown(report: dict) -> str:
         lines += [f"**The body failed to load**: {body.get('error')}: {body.get('message')}",
                   f"at {body.get('project_frame') or body.get('innermost_frame')}", ""]
         return "\n".join(lines) + "\n"
-    lines += ["| table | prior | status | seconds | where / largest difference from the smoke golden |",
-              "| --- | --- | --- | --: | --- |"]
+    lines += ["| table | prior | status | seconds | peak GiB | where / largest difference from the smoke golden |",
+              "| --- | --- | --- | --: | --: | --- |"]
     for p in report["pairs"]:
         if p["status"] == "failed":
             detail = f"{p['error']}: {p['message'][:200]} at `{p['project_frame'] or p['innermost_frame']}`"
@@ -152,7 +170,9 @@ def format_markdown(report: dict) -> str:
                                if isinstance(d, dict)) or diffs.get("note", "")
         else:
             detail = ""
-        lines.append(f"| {p['table']} | {p['prior']} | {p['status']} | {p.get('seconds', '')} | {detail.replace('|', '/')} |")
+        peak = "" if p.get("peak_gib") is None else p["peak_gib"]
+        lines.append(f"| {p['table']} | {p['prior']} | {p['status']} | {p.get('seconds', '')} | {peak} | "
+                     f"{detail.replace('|', '/')} |")
     return "\n".join(lines) + "\n"
 
 
