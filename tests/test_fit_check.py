@@ -119,7 +119,7 @@ def test_robustness_refuses_a_start_search_override(tmp_path):
 
 
 def _default_priors():
-    from benchmark.commands.run import default_priors
+    from benchmark.run.catalog import default_priors
     from benchmark.run.catalog import load_table_spec
 
     return default_priors(load_table_spec("table1"))

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from benchmark.run.catalog import get_profile, load_table_spec
-from benchmark.commands.run import default_priors
+from benchmark.run.catalog import default_priors
 from benchmark.run.backends.local import default_jobs
 from benchmark.run.table_run import run_table
 from goldens import check_or_update

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from benchmark.run.catalog import get_profile, load_table_spec
-from benchmark.commands.run import default_priors
+from benchmark.run.catalog import default_priors
 from benchmark.run.table_run import run_table
 from benchmark.core.work_units import metric_specs
 from goldens import check_or_update

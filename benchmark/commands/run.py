@@ -8,13 +8,7 @@ import sys
 from pathlib import Path
 
 from benchmark.commands.common import parse_pairs, resolve_device
-
-DEFAULT_PRIORS = ("no-prior", "vposer-slerp")  # when a table spec has no ``default_priors``
-
-
-def default_priors(spec: dict) -> list[str]:
-    """The rows a table runs without --prior: the spec's ``default_priors``, else DEFAULT_PRIORS."""
-    return list(spec.get("default_priors") or DEFAULT_PRIORS)
+from benchmark.run.catalog import default_priors
 
 
 def _check_data_arg(data: str | None) -> None:

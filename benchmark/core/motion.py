@@ -74,10 +74,11 @@ def _validate(poses, trans, timestamps, shape, where: str) -> None:
         bad = ~torch.isfinite(x)
         if bad.any():
             rows = torch.nonzero(bad.reshape(x.shape[0], -1).any(-1)).flatten()
-            unit = "frame" if name != "shape" else "index"
-            fix = (f"; drop or repair those {unit}s (a capture's gaps are often NaN: trim the sequence to the frames "
-                   "that hold values, or fill them) and save the file again" if name != "shape" else
-                   "; give finite shape coefficients")
+            if name == "shape":
+                unit, fix = "index", "; give finite shape coefficients"
+            else:
+                unit, fix = "frame", ("; drop or repair those frames (a capture's gaps are often NaN: trim the sequence "
+                                      "to the frames that hold values, or fill them) and save the file again")
             raise ValueError(
                 f"{where}: field {name!r} has {int(bad.sum())} non-finite values (NaN/inf) in {rows.numel()} "
                 f"{unit}{'s' if rows.numel() != 1 else ''} (the first: {rows[:5].tolist()}){fix}"

@@ -23,8 +23,8 @@ body model, not to the harness's default body.
 from __future__ import annotations
 
 import fnmatch
-import zipfile
 import math
+import zipfile
 from functools import lru_cache
 from pathlib import Path
 

@@ -166,24 +166,24 @@ def _cell_range(lo, hi, o, h, d):
     return a, b
 
 
-def _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, pts, r0, max_cells, known, best0, bi0):
+def _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, pts, r0, max_cells, best0, bi0):
     """(sorted position, squared distance) of the nearest grid point to (qx, qy, qz).
 
     Scans the cells that meet the cube of half-side R about the query (R = ``r0`` first), skipping
     cells already scanned and cells farther than the best point so far; done once the best point
     is within R (every point outside the scanned cells lies outside the cube, farther than R).
     Otherwise R becomes the best distance (that cube holds the nearest point) or doubles while no
-    point was found. ``known``: some point is known to lie within ``r0`` (a hint), so the first
-    cube is the last. ``bi0`` >= 0: that point's sorted position, and ``best0`` its squared
-    distance: the search starts from it as its best point, so the cells farther than it are
-    skipped from the first (else -1 and inf). Returns (-1, inf) instead when the cube would span more than ``max_cells``
-    cells with no point found yet (the query is far from every point: the caller asks a KD-tree).
+    point was found. ``bi0`` >= 0: a point known to lie within ``r0`` (a hint: its sorted position,
+    ``best0`` its squared distance), so the first cube is the last, and the search starts from it
+    as its best point, skipping the cells farther than it from the first (else -1 and inf).
+    Returns (-1, inf) instead when the cube would span more than ``max_cells`` cells with no point
+    found yet (the query is far from every point: the caller asks a KD-tree).
     """
     slack = 1e-9 * h + 1e-12
     best = best0
     bi = bi0
     r = r0
-    conclusive = known
+    conclusive = bi0 >= 0
     p0, q0, p1, q1, p2, q2 = 1, 0, 1, 0, 1, 0  # the block scanned so far (empty)
     while True:
         rr = r + slack
@@ -264,9 +264,9 @@ def _query(queries, qlengths, order, max_cells, hints, where, lengths, geom, cel
                 s0 = where[base + j]  # the previous answer: its distance bounds the search, and it is the best so far
                 d = _sqdist(sorted_pts, s0, qx, qy, qz)
                 s, d = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, math.sqrt(d), max_cells,
-                                True, d, s0)
+                                d, s0)
             else:
-                s, d = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, r, max_cells, False,
+                s, d = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, r, max_cells,
                                 math.inf, -1)
             if s < 0:
                 out[n, i] = UNRESOLVED
@@ -291,7 +291,7 @@ def _cell_candidates(n, c, j0, j1, j2, cgeom, geom, cell_off, starts, sorted_pts
     d0, d1, d2 = int(geom[n, 4]), int(geom[n, 5]), int(geom[n, 6])
     c0 = cell_off[n]
     cx, cy, cz = lx + 0.5 * hc, ly + 0.5 * hc, lz + 0.5 * hc
-    s_best, _ = _nearest(cx, cy, cz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, 0.5 * h, 1 << 62, False,
+    s_best, _ = _nearest(cx, cy, cz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, 0.5 * h, 1 << 62,
                          math.inf, -1)
     px, py, pz = sorted_pts[s_best, 0], sorted_pts[s_best, 1], sorted_pts[s_best, 2]
     fx = max(abs(px - lx), abs(px - ux))
@@ -343,7 +343,7 @@ def _query_cached(queries, qlengths, order, max_cells, geom, cell_off, starts, i
             j1 = int(math.floor((qy - gy) / hc))
             j2 = int(math.floor((qz - gz) / hc))
             if j0 < 0 or j0 >= e0 or j1 < 0 or j1 >= e1 or j2 < 0 or j2 >= e2:
-                s, _ = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, 0.5 * h, max_cells, False,
+                s, _ = _nearest(qx, qy, qz, ox, oy, oz, h, d0, d1, d2, starts, c0, sorted_pts, 0.5 * h, max_cells,
                                 math.inf, -1)
                 if s < 0:
                     out[n, i] = UNRESOLVED

@@ -89,6 +89,14 @@ def load_table_spec(name: str) -> dict:
     return spec
 
 
+DEFAULT_PRIORS = ("no-prior", "vposer-slerp")  # when a table spec has no ``default_priors``
+
+
+def default_priors(spec: dict) -> list[str]:
+    """The rows a table runs without --prior: the spec's ``default_priors``, else DEFAULT_PRIORS."""
+    return list(spec.get("default_priors") or DEFAULT_PRIORS)
+
+
 @lru_cache(maxsize=None)
 def load_profiles() -> dict:
     return yaml.safe_load(resources.files("benchmark").joinpath("profiles.yaml").read_text())

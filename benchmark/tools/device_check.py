@@ -36,8 +36,10 @@ def pair_order(tables: list[str], priors_of: dict[str, list[str]]) -> list[tuple
 def failure_record(exc: BaseException) -> dict:
     """What failed and where: the exception and the innermost frames in the project and outside it."""
     frames = traceback.extract_tb(exc.__traceback__)
+
     def where(f):
         return f"{f.filename}:{f.lineno} ({f.name}): {(f.line or '').strip()}"
+
     ours = [f for f in frames if any(f"/{part}/" in f.filename.replace("\\", "/") for part in PROJECT_PARTS)]
     return {
         "error": type(exc).__name__,
@@ -49,8 +51,8 @@ def failure_record(exc: BaseException) -> dict:
 
 
 def golden_differences(table: dict, golden_path: Path, prior: str) -> dict:
-    """Per metric, the largest |difference| (and relative difference) of ``prior``'s row against the
-    committed smoke table; ``{"note": ...}`` where there is nothing to compare."""
+    """Per metric, the largest |difference| of ``prior``'s row against the committed smoke table and
+    that difference relative to the committed value; ``{"note": ...}`` where there is nothing to compare."""
     from benchmark.tools.compare import compare_tables, load_table_json, only_priors
 
     if not golden_path.is_file():
@@ -63,10 +65,10 @@ def golden_differences(table: dict, golden_path: Path, prior: str) -> dict:
     for row in rows:
         if row.get("kind") != "cell" or row.get("diff") is None:
             continue
-        rel = abs(row["diff"]) / abs(row["a"]) if row["a"] else math.inf
-        best = out.get(row["metric"])
-        if best is None or abs(row["diff"]) > best["max_abs"]:
-            out[row["metric"]] = {"max_abs": abs(row["diff"]), "max_rel": rel}
+        largest = out.get(row["metric"])
+        if largest is None or abs(row["diff"]) > largest["max_abs"]:
+            out[row["metric"]] = {"max_abs": abs(row["diff"]),
+                                  "rel": abs(row["diff"]) / abs(row["a"]) if row["a"] else math.inf}
     mismatched = sorted({r["field"] for r in rows if r.get("kind") == "header" and r["status"] == "mismatch"})
     if mismatched:
         out["note"] = f"differs from {golden_path.name} in {', '.join(mismatched)}"
@@ -89,11 +91,11 @@ def check_device(device: str, tables: list[str], priors: list[str] | None, out: 
     """Run each (table, prior) pair's smoke table on ``device``; see the module docstring. Returns
     the report (also written to ``out``/device-check.json and .md)."""
     from benchmark.body import get_body
-    from benchmark.run.catalog import get_profile, load_table_spec
+    from benchmark.run.catalog import default_priors, get_profile, load_table_spec
     from benchmark.run.table_run import run_table
 
     specs = {t: load_table_spec(t) for t in tables}
-    priors_of = {t: [p for p in (priors or specs[t].get("default_priors") or ["no-prior"])] for t in tables}
+    priors_of = {t: list(priors or default_priors(specs[t])) for t in tables}
     report = {"environment": environment(device), "budget_s": budget_s, "pairs": []}
     start = time.monotonic()
     try:
@@ -166,7 +168,7 @@ def format_markdown(report: dict) -> str:
             detail = f"{p['error']}: {p['message'][:200]} at `{p['project_frame'] or p['innermost_frame']}`"
         elif p["status"] == "ok":
             diffs = p.get("against_smoke_golden", {})
-            detail = "; ".join(f"{m} {d['max_abs']:.2f} ({100 * d['max_rel']:.1f} %)" for m, d in diffs.items()
+            detail = "; ".join(f"{m} {d['max_abs']:.2f} ({100 * d['rel']:.1f} %)" for m, d in diffs.items()
                                if isinstance(d, dict)) or diffs.get("note", "")
         else:
             detail = ""
