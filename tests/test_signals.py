@@ -386,6 +386,26 @@ def test_run_units_says_what_is_stored_when_interrupted(tmp_path):
     assert len(list((tmp_path / "units").glob("*.json"))) == 2
 
 
+def test_a_signal_between_a_units_file_and_its_bookkeeping_counts_the_file(tmp_path, monkeypatch):
+    """The count in the stop line is what the rerun reuses: the files on disk, even when the signal
+    lands right after a unit's file is written (seen on CI: the line said 0 while 1 file was there)."""
+    written = []
+
+    def write_then_stop(path, obj):
+        runner_write(path, obj)
+        written.append(path)
+        if len(written) == 2:
+            raise Terminated()
+
+    runner_write = runner.atomic_write_json
+    monkeypatch.setattr(runner, "atomic_write_json", write_then_stop)
+    units = plan()
+    with pytest.raises(Terminated) as caught:
+        runner.run_units(units, FakeExecutor(), tmp_path, progress=False)
+    assert caught.value.stop_note.startswith(f"2 of {len(units)} work unit(s) stored in ")
+    assert len(list((tmp_path / "units").glob("*.json"))) == 2
+
+
 def test_a_keyboard_interrupt_after_sigterm_is_still_sigterm():
     """Ray's ray.wait raises a new KeyboardInterrupt when a signal handler raised: still SIGTERM."""
     with pytest.raises(Terminated) as caught:

@@ -235,7 +235,9 @@ def run_units(
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: what finished is stored; say so, and how to go on
         from benchmark.core.interrupts import add_stop_note
 
-        add_stop_note(exc, f"{len(report.reused) + len(report.ran)} of {len(units)} work unit(s) stored in "
+        # counted on disk: the signal may land between a unit's file and its bookkeeping
+        stored = sum(unit_path(out_dir, unit.unit_id).exists() for unit in units)
+        add_stop_note(exc, f"{stored} of {len(units)} work unit(s) stored in "
                            f"{Path(out_dir) / 'units'}; the same command resumes from them")
         raise
     finally:
