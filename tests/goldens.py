@@ -4,8 +4,8 @@ comparison, and the explicit rewrite, shared by the smoke and quick regression t
 Tolerances are in the metrics' units. table1 has its own (:data:`TABLE_TOLERANCES`); the other
 tables go by unit suffix (``*_mm``: 3 mm), accelerations get 0.5 m/s^2, other unitless metrics 0.05,
 and measured timings (``s_per_frame``) are never compared. Measured chaotic cells get wider absolute
-tolerances (:data:`CHAOTIC`), and the metrics that move between machines a relative one
-(:data:`CROSS_MACHINE`).
+tolerances (:data:`CHAOTIC`, per prior) or a fraction of the golden value (:data:`CHAOTIC_CELLS`,
+a whole cell), and the metrics that move between machines a relative one (:data:`CROSS_MACHINE`).
 """
 
 from __future__ import annotations
@@ -47,6 +47,22 @@ CHAOTIC = {("inbetween", "motion-dvae", "mpjpe_mm"): 20.0, ("inbetween", "motion
            ("sls", "motion-dvae", "mpjpe_mm"): 10.0, ("sls", "motion-dvae", "landmark_mm"): 10.0,
            ("table1", "motion-dvae", "mpjpe_mm"): 200.0, ("table1", "motion-dvae", "chamfer_mm"): 50.0,
            ("table1", "motion-dvae", "chamfer_surface_mm"): 50.0}
+
+
+# Whole cells whose smoke fits are chaotic, measured: (table, cell coordinates as sorted (key, value)
+# pairs) -> a fraction of the golden value that every prior's metrics of the cell pass within. The
+# sls sparse-frames cell f5 (1 sequence, 5 of its 100 anchors observed, 20-step fits) re-run on an
+# Intel Xeon against its golden made on the AMD EPYC (2026-12-06, `-m slow`) moved by up to 61.4 %
+# (the sequential primitives' landmark error 71.5 -> 115.4 mm; VPoser+SLERP Chamfer 28.9 -> 45.6,
+# the structured latent space's 54.1 -> 70.9), 12 of 28 comparisons beyond the 25 % of
+# CROSS_MACHINE; on that one machine, moving its observation (every scan point and landmark) by
+# 1e-6 m moved it by up to 27 % (the structured latent space's MPJPE 132.9 -> 97.7 mm, frequency-
+# guided's 127.2 -> 96.4). f20 is no better (the structured latent space's Chamfer 55.6 -> 70.2 mm
+# under the same 1e-6 m). Its few observed anchors leave the start search's per-anchor choices and
+# the encoders' basins to the last digits. So f5 guards against a broken path (a NaN, a metric that
+# doubles), not against centimetres; the quick table (8 sequences, fits to their plateau) is the
+# number to read for sparse frames.
+CHAOTIC_CELLS = {("sls", (("sweep", "f5"),)): 0.7}
 
 
 # Relative tolerances for the spread between machines: (table, metric) -> a fraction of the golden
@@ -95,6 +111,15 @@ def _within_chaotic(table: str, row: dict) -> bool:
     return tol is not None and row.get("status") == "out of tolerance" and diff is not None and abs(diff) <= tol
 
 
+def _within_chaotic_cell(table: str, row: dict) -> bool:
+    """A difference that only a chaotic whole cell's fraction of the golden value
+    (:data:`CHAOTIC_CELLS`) accepts."""
+    frac = CHAOTIC_CELLS.get((table, tuple(sorted((row.get("cell") or {}).items()))))
+    diff, golden = row.get("diff"), row.get("a")
+    return (frac is not None and row.get("status") == "out of tolerance" and diff is not None and golden is not None
+            and abs(diff) <= frac * abs(golden))
+
+
 def _within_cross_machine(table: str, row: dict) -> bool:
     """A difference that only the relative tolerance of :data:`CROSS_MACHINE` accepts: at most that
     fraction of the golden value (``a``)."""
@@ -106,8 +131,9 @@ def _within_cross_machine(table: str, row: dict) -> bool:
 
 def accepted(table: str, row: dict) -> bool:
     """Whether a comparison row of :func:`benchmark.tools.compare.compare_tables` passes: within the
-    absolute tolerance, a chaotic cell's wider one, or the cross-machine relative one."""
-    return row.get("ok", True) or _within_chaotic(table, row) or _within_cross_machine(table, row)
+    absolute tolerance, a chaotic prior's or whole cell's wider one, or the cross-machine relative one."""
+    return (row.get("ok", True) or _within_chaotic(table, row) or _within_chaotic_cell(table, row)
+            or _within_cross_machine(table, row))
 
 
 def restrict_to_grid(table: dict, grid: dict) -> dict:
