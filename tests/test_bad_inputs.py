@@ -244,6 +244,17 @@ def _(tmp, mp):
     return ["run", "table1", "--prior", "no-prior", "--data", str(folder), "--out", str(tmp / "o")]
 
 
+@case("--data where every motion is shorter than the window", "run", "every motion is shorter than the 4.0 s window",
+      "short.npz", "lasts 1.0", "at least 4.0 s")
+def _(tmp, mp):
+    def short(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path, poses=np.zeros((31, 156)), trans=np.zeros((31, 3)), mocap_framerate=np.array(30.0), betas=np.zeros(16))
+
+    short(tmp / "data" / "short.npz")  # alone: a folder with one long enough motion runs it
+    return ["run", "table1", "--prior", "no-prior", "--data", str(tmp / "data"), "--out", str(tmp / "o")]
+
+
 @case("--data AMASS file with keys pose/transl", "run", "bad.npz", "'pose' / 'transl' are not AMASS names")
 def _(tmp, mp):
     folder = data_folder(tmp, {"bad.npz": amass_pose_transl})
