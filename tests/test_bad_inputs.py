@@ -255,6 +255,15 @@ def _(tmp, mp):
     return ["run", "table1", "--prior", "no-prior", "--data", str(tmp / "data"), "--out", str(tmp / "o")]
 
 
+@case("sls --data without a motion cycle", "run", "sls found no motion cycle of 0.3-3.0 s", "short.npz",
+      "repeat a movement")
+def _(tmp, mp):
+    path = tmp / "data" / "short.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, poses=np.zeros((31, 156)), trans=np.zeros((31, 3)), mocap_framerate=np.array(30.0), betas=np.zeros(16))
+    return ["run", "sls", "--prior", "no-prior", "--data", str(tmp / "data"), "--out", str(tmp / "o")]
+
+
 @case("--data AMASS file with keys pose/transl", "run", "bad.npz", "'pose' / 'transl' are not AMASS names")
 def _(tmp, mp):
     folder = data_folder(tmp, {"bad.npz": amass_pose_transl})

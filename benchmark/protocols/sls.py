@@ -148,7 +148,11 @@ def load_motions(spec: dict, data: str | None, body) -> dict:
         log.warning("sls: %d motions have no motion cycle of %s-%s s and are left out: %s", len(skipped),
                     d["cycle_min_s"], d["cycle_max_s"], skipped[:5])
     if not out:
-        raise ValueError(f"sls: no motion cycle found in {len(ids)} motions ({cutter}); check the data")
+        where = f"--data {data}" if data is not None else "the synthetic test split"
+        raise ValueError(f"{where}: sls found no motion cycle of {d['cycle_min_s']}-{d['cycle_max_s']} s in any of its "
+                         f"{len(ids)} motions ({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''}; cutter: {cutter}); "
+                         "sls completes one-cycle sequences: give motions that repeat a movement (walking, running) "
+                         "with at least one whole cycle, or run another table on these motions")
     log.info("sls: %d one-cycle sequences from %d motions (%s)", len(out), len(ids), cutter)
     return out
 
