@@ -111,22 +111,23 @@ def _within_chaotic(table: str, row: dict) -> bool:
     return tol is not None and row.get("status") == "out of tolerance" and diff is not None and abs(diff) <= tol
 
 
-def _within_chaotic_cell(table: str, row: dict) -> bool:
-    """A difference that only a chaotic whole cell's fraction of the golden value
-    (:data:`CHAOTIC_CELLS`) accepts."""
-    frac = CHAOTIC_CELLS.get((table, tuple(sorted((row.get("cell") or {}).items()))))
+def _within_fraction(row: dict, frac: float | None) -> bool:
+    """An out-of-tolerance difference of at most ``frac`` of the golden value (``a``); False without ``frac``."""
     diff, golden = row.get("diff"), row.get("a")
     return (frac is not None and row.get("status") == "out of tolerance" and diff is not None and golden is not None
             and abs(diff) <= frac * abs(golden))
+
+
+def _within_chaotic_cell(table: str, row: dict) -> bool:
+    """A difference that only a chaotic whole cell's fraction of the golden value
+    (:data:`CHAOTIC_CELLS`) accepts."""
+    return _within_fraction(row, CHAOTIC_CELLS.get((table, tuple(sorted((row.get("cell") or {}).items())))))
 
 
 def _within_cross_machine(table: str, row: dict) -> bool:
     """A difference that only the relative tolerance of :data:`CROSS_MACHINE` accepts: at most that
     fraction of the golden value (``a``)."""
-    frac = CROSS_MACHINE.get((table, row.get("metric")))
-    diff, golden = row.get("diff"), row.get("a")
-    return (frac is not None and row.get("status") == "out of tolerance" and diff is not None and golden is not None
-            and abs(diff) <= frac * abs(golden))
+    return _within_fraction(row, CROSS_MACHINE.get((table, row.get("metric"))))
 
 
 def accepted(table: str, row: dict) -> bool:
