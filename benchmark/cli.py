@@ -16,8 +16,8 @@ def build_parser() -> argparse.ArgumentParser:
     """The parser of ``python -m benchmark``: one sub-command per module of :mod:`benchmark.commands`
     (each adds its parser with ``add_command``), in the order of ``--help``."""
     from benchmark.commands import (check_prior, compare, complete, data, describe, device_check, encoder_check,
-                                    error_breakdown, export_onnx, fit_check, list as list_command, perf, report, run,
-                                    train, train_report)
+                                    error_breakdown, export_onnx, fit_check, list as list_command, merge_rows, perf,
+                                    report, run, train, train_report)
 
     parser = argparse.ArgumentParser(
         prog="python -m benchmark",
@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="print the traceback of an error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for command in (list_command, data, perf, complete, run, describe, check_prior, train, export_onnx, compare,
-                    fit_check, error_breakdown, encoder_check, train_report, report, device_check):
+                    merge_rows, fit_check, error_breakdown, encoder_check, train_report, report, device_check):
         command.add_command(sub)
     return parser
 

@@ -192,6 +192,10 @@ class PriorAdapter(torch.nn.Module, metaclass=abc.ABCMeta):
     constant_latents: tuple[str, ...] = ()  # latents entries the decoder reads but never optimises (no gradient)
     frozen_network: str | None = None  # the submodule holding the trained network, kept frozen and in eval mode
     default_weights: ClassVar[Path | None] = None  # the embedded checkpoint size "embedded" reads without --weights
+    # Bumped when a change to the adapter's code moves its numbers under the same weights (its
+    # latents' units, its start): from 2 on it enters the work units' identity, so units stored by
+    # an older revision are recomputed, not reused (revision 1 is left out, keeping stored units valid)
+    adapter_revision: ClassVar[int] = 1
 
     # -- set by the constructor ------------------------------------------------------------
     size: str = "embedded"

@@ -194,7 +194,7 @@ def test_adapter_latents_decode_prior_term(adapter):
     assert adapter.window.kind == "fixed" and adapter.window.frames == 30 and adapter.window.fps == 30.0
     assert adapter.encodes_translation and adapter.encodes_root_orientation and adapter.heading_normalised
     lat = adapter.init_latents(_batch(window_s=4.0), torch.Generator().manual_seed(0))
-    assert lat["x0"].shape == (2, STATE_DIM) and lat["z"].shape == (2, 119, 8)  # 120-frame grid
+    assert lat["x0n"].shape == (2, STATE_DIM) and lat["z"].shape == (2, 119, 8)  # 120-frame grid
     lat = adapter.init_latents(_batch(), torch.Generator().manual_seed(0))
     assert lat["z"].shape == (2, 59, 8)
     again = adapter.init_latents(_batch(), torch.Generator().manual_seed(0))
@@ -205,11 +205,11 @@ def test_adapter_latents_decode_prior_term(adapter):
     assert dec.rotations.shape == (2, 60, 22, 3, 3) and dec.trans.shape == (2, 60, 3)
     eye = dec.rotations.transpose(-1, -2) @ dec.rotations
     assert (eye - torch.eye(3)).abs().max() < 1e-4
-    assert torch.allclose(dec.trans[:, 0], lat["x0"][:, :3])
+    assert torch.allclose(dec.trans[:, 0], adapter.net.unnormalise(lat["x0n"])[:, :3], atol=1e-6)
     prior = adapter.prior_term(lat)
     assert prior.shape == (2,) and torch.isfinite(prior).all()
     (dec.trans.square().sum() + dec.rotations.sum() + prior.sum()).backward()
-    assert lat["x0"].grad.abs().sum() > 0 and lat["z"].grad.abs().sum() > 0
+    assert lat["x0n"].grad.abs().sum() > 0 and lat["z"].grad.abs().sum() > 0
     adapter.prior_term_kind = "l2"
     try:
         assert torch.allclose(adapter.prior_term(lat), lat["z"].detach().square().sum(-1).mean(-1))
@@ -217,6 +217,8 @@ def test_adapter_latents_decode_prior_term(adapter):
         adapter.prior_term_kind = "learned"
     with pytest.raises(ValueError, match="timestamps"):
         adapter.decode(lat, grid[:, :30])
+    with pytest.raises(ValueError, match="revision 1.*x0n"):  # a raw first state under the old key is refused
+        adapter.decode({"x0": lat["x0n"], "z": lat["z"]}, grid)
     with pytest.raises(ValueError, match="30 fps"):
         adapter.decode(lat, grid * 2)
     assert not any(p.requires_grad for p in adapter.parameters())
@@ -232,15 +234,43 @@ def test_encode_then_decode(trained, adapter):
     _, _, windows = trained
     rot, trans, ts = _motion(windows)
     lat = adapter.encode_motion(rot, trans, ts)
-    assert lat["x0"].shape == (2, STATE_DIM) and lat["z"].shape == (2, 11, 8)
+    assert lat["x0n"].shape == (2, STATE_DIM) and lat["z"].shape == (2, 11, 8)
     dec = adapter.decode(lat, ts)
     rot_c, trans_c, _, _ = canonicalise(rot, trans)
     truth = body_points(rot_c, trans_c, REST)
     err = (body_points(dec.rotations, dec.trans, REST) - truth).norm(dim=-1).mean()
-    rand = {"x0": lat["x0"], "z": torch.randn(lat["z"].shape, generator=torch.Generator().manual_seed(5))}
+    rand = {"x0n": lat["x0n"], "z": torch.randn(lat["z"].shape, generator=torch.Generator().manual_seed(5))}
     err_rand = (body_points(*(lambda d: (d.rotations, d.trans))(adapter.decode(rand, ts)), REST) - truth).norm(dim=-1).mean()
     assert torch.isfinite(err) and err < err_rand
     assert torch.equal(adapter.encode_motion(rot, trans, ts)["z"], lat["z"])  # deterministic
+
+
+def test_an_encoded_motion_is_held_to_the_training_support(trained):
+    """A joint turned about axes the training data never turns (deviation at the floor) is read at
+    its training mean in every frame, and a first state far outside the training spread is held
+    within X0_HOLD deviations (translation excepted); the latents are encoded from the held states."""
+    import copy
+
+    from priors.motion_dvae.adapter import X0_HOLD
+    from priors.motion_dvae.model import STATE_STD_FLOOR
+
+    net = copy.deepcopy(trained[0])
+    net.state_std[24:27] = STATE_STD_FLOOR  # joint 7: never turned in the data
+    net.state_std[27:30] = 0.005  # joint 8: barely turned
+    held = MotionDVAEPrior.from_network(net)
+    rot, trans, ts = _motion(trained[2])
+    turned = rot.clone()
+    for j in (7, 8):
+        turned[:, :, j] = roma.rotvec_to_rotmat(torch.tensor([0.0, 0.0, 0.05])) @ turned[:, :, j]
+    xn = net.normalise(held._prepare(turned, trans, ts, "test")[0])
+    assert xn[:, :, 24:30].abs().amax(dim=(1, 2)).min() > 10 * X0_HOLD  # far outside the spread unheld
+    lat = held.encode_motion(turned, trans, ts)
+    assert lat["x0n"][:, 3:].abs().max() <= X0_HOLD + 1e-6 and lat["x0n"][:, 27:30].abs().max() > X0_HOLD - 1e-6
+    assert torch.equal(lat["x0n"][:, 24:27], torch.zeros(2, 3))  # at the training mean
+    assert torch.equal(lat["x0n"][:, :3], xn[:, 0, :3])  # the translation is not held
+    support = xn.clone()
+    support[..., net.state_std <= STATE_STD_FLOOR] = 0.0
+    assert torch.equal(lat["z"], net.infer(net.encoder, support, lat["x0n"], sample=False)[0])
 
 
 def test_denoise_motion_modes(trained, adapter):
@@ -316,16 +346,16 @@ def test_onnx_export_parity(adapter, tmp_path):
                       dynamic_axes={n: {0: "batch"} for n in spec.input_names + spec.output_names},
                       opset_version=17, dynamo=False)
     g = torch.Generator().manual_seed(3)
-    x0 = adapter.net.x0_mean.expand(3, -1) + 0.1 * torch.randn(3, STATE_DIM, generator=g)
+    x0 = adapter.net.normalise(adapter.net.x0_mean).expand(3, -1) + 0.1 * torch.randn(3, STATE_DIM, generator=g)
     z = torch.randn(3, *spec.example_inputs[1].shape[1:], generator=g)
     with torch.no_grad():
         ref = spec.module(x0, z)
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    out = sess.run(None, {"x0": x0.numpy(), "z": z.numpy()})
+    out = sess.run(None, {"x0n": x0.numpy(), "z": z.numpy()})
     for r, o in zip(ref, out):
         assert r.shape == o.shape
         assert torch.allclose(torch.from_numpy(o), r, rtol=1e-3, atol=1e-5)
-    dec = adapter.decode({"x0": x0, "z": z}, (torch.arange(z.shape[1] + 1, dtype=torch.float64) / 30).expand(3, -1))
+    dec = adapter.decode({"x0n": x0, "z": z}, (torch.arange(z.shape[1] + 1, dtype=torch.float64) / 30).expand(3, -1))
     assert torch.allclose(dec.rotations, ref[0], atol=1e-5)
 
 

@@ -246,3 +246,20 @@ def test_provenance_has_versions_git_and_time():
         assert prov["versions"][lib], lib
     assert set(prov["git"]) == {"revision", "dirty", "note"}
     assert prov["git"]["revision"] is None or len(prov["git"]["revision"]) == 40
+
+
+def test_a_revised_adapter_gets_new_unit_identities_and_revision_1_keeps_the_old():
+    """``adapter_revision`` (priors.base) enters a prior's identity from 2 on: units stored under the
+    older code are planned under another spec hash, so they are recomputed, not reused; revision 1
+    leaves the identity (and every unit stored before revisions existed) unchanged."""
+    from benchmark.run.table_run import prior_identity
+    from priors.no_prior import NoPrior
+
+    class Revised(NoPrior):
+        adapter_revision = 2
+
+    plain, revised = prior_identity(NoPrior(), "embedded", None), prior_identity(Revised(), "embedded", None)
+    assert "adapter_revision" not in plain and revised == {**plain, "adapter_revision": 2}
+    hashes = lambda info: {u.unit_id: u.spec_hash for u in plan(priors=["p"], prior_info={"p": info})}  # noqa: E731
+    assert hashes(plain).keys() == hashes(revised).keys()
+    assert all(hashes(plain)[k] != hashes(revised)[k] for k in hashes(plain))

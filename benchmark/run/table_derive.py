@@ -122,7 +122,7 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
             done = [results[u.unit_id] for u in group if u.unit_id in results]
             row_cells.append(_derive_cell(cell, len(group), done, metrics, (meta["seed"], prior)))
         rows.append({"prior": prior, "cells": row_cells})
-    _add_paired(rows, cells, metrics, meta["seed"])
+    add_paired(rows, cells, metrics, meta["seed"])
 
     if "provenance" in meta and meta["provenance"] is not None:
         provenance = dict(meta["provenance"])
@@ -243,7 +243,7 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
     return out
 
 
-def _add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], table_seed) -> None:
+def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], table_seed) -> None:
     """The table-level pass: each cell's ``paired`` comparisons (:data:`PAIRED_DEFINITION`), against
     ``no-prior`` and against the cell's best prior, for every metric with per-sequence values."""
     for j, coords in enumerate(cells):

@@ -39,6 +39,21 @@ def motion_sha256(motion) -> str:
     return h.hexdigest()
 
 
+def prior_identity(adapter, size: str, weights: str | None) -> dict:
+    """What identifies a prior's numbers in its work units' spec hash: its size, the weights given,
+    the content of every weights file it read (embedded or given: new weights under the same file
+    name invalidate stored results) and, from revision 2 on, its adapter's revision
+    (:attr:`priors.base.PriorAdapter.adapter_revision`: a change of its code that moves its numbers)."""
+    from benchmark.run.registry import weights_content_sha256
+
+    info = {"size": size, "weights": weights, "weights_sha256": _sha_file(weights),
+            "embedded_sha256": weights_content_sha256(adapter)}
+    revision = int(getattr(adapter, "adapter_revision", 1))
+    if revision != 1:
+        info["adapter_revision"] = revision
+    return info
+
+
 def table_protocol(spec):
     """The protocol instance of a table spec: its ``protocol`` field looked up in the protocol
     registry (:mod:`benchmark.protocols.registry`, entry-point group ``benchmark.protocols``); the
@@ -94,7 +109,7 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     ``cpus_per_unit``, ``gpus_per_unit``), see :func:`benchmark.run.backends.make_backend`. The backend
     never changes a number."""
     from benchmark.run.backends import make_backend
-    from benchmark.run.registry import check_weights_option, make_adapter, weights_content_sha256
+    from benchmark.run.registry import check_weights_option, make_adapter
     from benchmark.run.runner import run_units
     from benchmark.run.table_derive import derive_table
     from benchmark.core.work_units import plan_units, select_sequences
@@ -120,10 +135,7 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     for name in priors:
         w = weights.get(name)
         adapters[name] = make_adapter(name, size=size, weights=w, device=device)
-        # the content of every weights file the adapter read (embedded or given): new weights under
-        # the same file name invalidate stored results
-        prior_info[name] = {"size": size, "weights": w, "weights_sha256": _sha_file(w),
-                            "embedded_sha256": weights_content_sha256(adapters[name])}
+        prior_info[name] = prior_identity(adapters[name], size, w)
 
     # the content of the motion data each sequence id stands for enters its units' spec hash
     data_hashes = {sid: motion_sha256(motions[sid]) for sid in ids}

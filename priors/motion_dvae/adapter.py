@@ -16,6 +16,8 @@ from priors.base import (
 )
 from priors.motion_dvae import checkpoint
 from priors.motion_dvae.model import (
+    DENOISE_INPUT_CLIP,
+    STATE_STD_FLOOR,
     MotionDVAE,
     PAPER_CONFIG,
 )
@@ -33,6 +35,24 @@ from priors.training import embedded_out_dir
 
 
 # -- the adapter -----------------------------------------------------------------------------
+# What the encoder reads of a motion is held to what the training data covers. The dimensions at the
+# deviation floor (joint axes the training data never turns: 48 of the embedded model's 138) are set
+# to their training mean in every frame, and the decoder's first state is held within X0_HOLD
+# deviations (translation excepted), the bound the model's noisy-input training holds x_0 to. A
+# per-frame fit a degree off turns those axes 35 deviations out, and the decoder fed that diverged
+# (encoder-check at 2 degrees: 525.6 mm unheld, 245.2 with x_0 held, 183.9 with the floor axes at
+# their mean too; clean 47.5 -> 46.8).
+X0_HOLD = DENOISE_INPUT_CLIP
+
+
+def hold_to_training_support(xn: torch.Tensor, state_std: torch.Tensor, bound: float = X0_HOLD) -> tuple[torch.Tensor, torch.Tensor]:
+    """(xn, x0n): standardised states (B, T, 138) with the floor dimensions at their mean (0), and
+    their first frame with every dimension but the translation clamped to +-bound."""
+    xn = torch.where(state_std <= STATE_STD_FLOOR * (1 + 1e-6), torch.zeros_like(xn), xn)
+    x0n = torch.cat([xn[:, 0, :3], xn[:, 0, 3:].clamp(-bound, bound)], -1)
+    return xn, x0n
+
+
 def _regular_30fps(timestamps: torch.Tensor, fps: float = FPS, tol: float = 1e-4) -> bool:
     t = timestamps.to(torch.float64)
     if t.shape[1] < 2:
@@ -46,14 +66,14 @@ def _grid_frames(window_s: float, frames: int = 30, fps: float = FPS) -> int:
 
 
 class _DecoderExport(nn.Module):
-    """(x0 (B, 138), z (B, T, 48)) -> (rotations (B, T+1, 22, 3, 3), trans (B, T+1, 3)) canonical."""
+    """(x0n (B, 138) standardised, z (B, T, 48)) -> (rotations (B, T+1, 22, 3, 3), trans (B, T+1, 3)) canonical."""
 
     def __init__(self, model: MotionDVAE):
         super().__init__()
         self.model = model
 
-    def forward(self, x0: torch.Tensor, z: torch.Tensor):
-        states = self.model.generate(x0, z)
+    def forward(self, x0n: torch.Tensor, z: torch.Tensor):
+        states = self.model.unnormalise(self.model.decode_normalised(x0n, z))
         rot, trans = state_to_motion(states)
         return rot, trans
 
@@ -73,6 +93,9 @@ class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNet
     frozen_network = "net"
     default_weights = DEFAULT_WEIGHTS
     prior_term_kind = "learned"  # or "l2"
+    # 2: the first state is a latent in standardised units ("x0n", was raw "x0"), and an encoded
+    # motion is held to the training data's support (hold_to_training_support; docs/priors.md)
+    adapter_revision = 2
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=weights, device=device)
@@ -109,17 +132,17 @@ class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNet
 
     # -- completion API
     def init_latents(self, batch: FitBatch, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        """x0 = the training mean first-frame state; z = an ancestral sample of the learned prior
-        over the protocol's grid (``ceil(window_s) * 30`` frames, so T - 1 latents)."""
+        """x0n = the training mean first-frame state (standardised); z = an ancestral sample of the
+        learned prior over the protocol's grid (``ceil(window_s) * 30`` frames, so T - 1 latents)."""
         T = _grid_frames(batch.window_s, self.window.frames, self.window.fps)
         B = batch.batch_size
         with torch.no_grad():
             x0 = self.net.x0_mean.expand(B, -1).clone()
             z = self.net.sample_prior(x0, T - 1, generator=generator)
-        return {"x0": x0, "z": z}
+        return {"x0n": self.net.normalise(x0), "z": z}
 
     def mean_latents(self, batch: FitBatch) -> dict[str, torch.Tensor]:
-        """x0 = the training mean first-frame state; z = the learned prior's mean path: the ancestral
+        """x0n = the training mean first-frame state (standardised); z = the learned prior's mean path: the ancestral
         pass of :meth:`init_latents` with every step at its conditional mean (temperature 0)."""
         T = _grid_frames(batch.window_s, self.window.frames, self.window.fps)
         with torch.no_grad():
@@ -127,15 +150,18 @@ class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNet
             # temperature 0: z_t = the conditional mean (the noise drawn is multiplied by 0; a private
             # generator keeps the global random state untouched)
             z = self.net.sample_prior(x0, T - 1, generator=torch.Generator(x0.device).manual_seed(0), temperature=0.0)
-        return {"x0": x0, "z": z}
+        return {"x0n": self.net.normalise(x0), "z": z}
 
     def _check_latents(self, latents: dict, where: str):
-        if "x0" not in latents or "z" not in latents:
-            raise ValueError(f"motion-dvae.{where}: latents must hold 'x0' (B, {STATE_DIM}) and 'z' (B, T-1, {self.z_dim}); "
-                             f"got keys {sorted(latents)}")
-        x0, z = latents["x0"], latents["z"]
+        """(x0n, z) of ``latents``: the standardised first state (B, 138) and the latents (B, T-1, Z)."""
+        if "x0n" not in latents or "z" not in latents:
+            hint = (" ('x0' is the raw first state of adapter revision 1; standardise it with net.normalise and "
+                    "pass it as 'x0n')" if "x0" in latents else "")
+            raise ValueError(f"motion-dvae.{where}: latents must hold 'x0n' (B, {STATE_DIM}, the first state standardised) "
+                             f"and 'z' (B, T-1, {self.z_dim}); got keys {sorted(latents)}{hint}")
+        x0, z = latents["x0n"], latents["z"]
         if x0.dim() != 2 or x0.shape[1] != STATE_DIM:
-            raise ValueError(f"motion-dvae.{where}: latents['x0'] must be (B, {STATE_DIM}), got {tuple(x0.shape)}")
+            raise ValueError(f"motion-dvae.{where}: latents['x0n'] must be (B, {STATE_DIM}), got {tuple(x0.shape)}")
         if z.dim() != 3 or z.shape[0] != x0.shape[0] or z.shape[2] != self.z_dim:
             raise ValueError(f"motion-dvae.{where}: latents['z'] must be (B, T-1, {self.z_dim}) with B = {x0.shape[0]}, got {tuple(z.shape)}")
         return x0, z
@@ -143,23 +169,23 @@ class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNet
     def decode(self, latents: dict[str, torch.Tensor], timestamps: torch.Tensor, shape: torch.Tensor | None = None) -> Decoded:
         """Motion at the 30 fps grid ``timestamps`` (B, T) with T = z.shape[1] + 1 (frame 0 = x0):
         rotations (B, T, 22, 3, 3) and translation (B, T, 3) in the canonical frame."""
-        x0, z = self._check_latents(latents, "decode")
+        x0n, z = self._check_latents(latents, "decode")
         B, T = timestamps.shape
-        if B != x0.shape[0] or T != z.shape[1] + 1:
+        if B != x0n.shape[0] or T != z.shape[1] + 1:
             raise ValueError(f"motion-dvae.decode: timestamps {tuple(timestamps.shape)} must be (B, T) = "
-                             f"({x0.shape[0]}, {z.shape[1] + 1}) (one frame per latent z_t plus frame 0)")
+                             f"({x0n.shape[0]}, {z.shape[1] + 1}) (one frame per latent z_t plus frame 0)")
         if T > 1 and not _regular_30fps(timestamps, self.window.fps):
             raise ValueError("motion-dvae.decode: timestamps must be a regular 30 fps grid (the model is recurrent at 30 fps); "
                              "the protocol interpolates to other times")
-        states = self.net.generate(x0, z)
+        states = self.net.unnormalise(self.net.decode_normalised(x0n, z))
         rot, trans = state_to_motion(states)
         return Decoded(rotations=rot, trans=trans, extra={"state": states})
 
     def prior_term(self, latents: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B,) learned: -1/(T-1) sum_t log N(z_t; prior(h_{t-1})); l2: mean over frames of |z_t|^2."""
-        x0, z = self._check_latents(latents, "prior_term")
+        x0n, z = self._check_latents(latents, "prior_term")
         if self.prior_term_kind == "learned":
-            return self.net.prior_nll(x0, z)
+            return self.net.prior_nll_normalised(x0n, z)
         if self.prior_term_kind == "l2":
             return z.square().sum(-1).mean(-1)
         raise ValueError(f"motion-dvae: prior_term_kind must be 'learned' or 'l2', got {self.prior_term_kind!r}")
@@ -189,17 +215,20 @@ class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNet
 
     @torch.no_grad()
     def encode_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Posterior means ``{"x0": (B, 138), "z": (B, T-1, 48)}`` of a clean motion.
+        """Posterior means ``{"x0n": (B, 138), "z": (B, T-1, 48)}`` of a motion.
 
         The motion is canonicalised at its first frame (decode returns the canonical frame: the
         caller aligns heading and ground-plane offset) and, if its timestamps are not a 30 fps grid,
-        resampled to one from its first timestamp (then T is the grid's length). x0 is the observed
-        first state (x_0 is given in the DVAE); z_t the clean encoder's posterior means, fed back.
+        resampled to one from its first timestamp (then T is the grid's length). The standardised
+        states are held to the training data's support (:func:`hold_to_training_support`: the axes
+        the data never turns at their mean, the first state within ``X0_HOLD`` deviations). x0n is
+        the held first state (x_0 is given in the DVAE); z_t the clean encoder's posterior means on
+        the held states, fed back, decoding from that x0n.
         """
         states, *_ = self._prepare(rotations, trans, timestamps, "encode_motion")
-        xn = self.net.normalise(states)
-        z = self.net.encode_means(xn)
-        return {"x0": states[:, 0].clone(), "z": z}
+        xn, x0n = hold_to_training_support(self.net.normalise(states), self.net.state_std)
+        z = self.net.infer(self.net.encoder, xn, x0n, sample=False)[0]
+        return {"x0n": x0n, "z": z}
 
     def denoise_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor,
                        mode: str = "regression", iterations: int = 50, lr: float = 3e-4, seed: int = 0) -> Decoded:
@@ -249,19 +278,19 @@ class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNet
 
     # -- export
     def export_decoder(self) -> ExportSpec:
-        """ONNX: (x0 (B, 138), z (B, T, 48)) -> (rotations (B, T+1, 22, 3, 3), trans (B, T+1, 3)).
+        """ONNX: (x0n (B, 138), z (B, T, 48)) -> (rotations (B, T+1, 22, 3, 3), trans (B, T+1, 3)).
 
         The canonical-frame decode path of :meth:`decode` (one LSTM over the sequence, MLP heads,
-        axis-angle -> matrices). Batch is dynamic; T is the example's (29 latents, a 1 s window)
-        and should be taken as fixed in the exported graph. Example latents: the training mean x0
-        and an ancestral prior sample (seed 0).
+        axis-angle -> matrices), on the fit's latents (x0n standardised). Batch is dynamic; T is the
+        example's (29 latents, a 1 s window) and should be taken as fixed in the exported graph.
+        Example latents: the training mean first state and an ancestral prior sample (seed 0).
         """
         g = torch.Generator().manual_seed(0)
         with torch.no_grad():
             x0 = self.net.x0_mean.expand(2, -1).clone()
             z = self.net.sample_prior(x0, self.window.frames - 1, generator=g)
-        return ExportSpec(module=_DecoderExport(self.net).eval(), example_inputs=(x0, z),
-                          input_names=["x0", "z"], output_names=["rotations", "trans"])
+        return ExportSpec(module=_DecoderExport(self.net).eval(), example_inputs=(self.net.normalise(x0), z),
+                          input_names=["x0n", "z"], output_names=["rotations", "trans"])
 
     @classmethod
     def train_embedded(cls, out_dir=None, steps=None, seed: int = 0, overwrite: bool = False, dataset=None) -> dict:

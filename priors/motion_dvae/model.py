@@ -27,6 +27,8 @@ LOGVAR_RANGE = (-12.0, 8.0)
 DEC_LOGVAR_RANGE = (-7.0, 2.0)  # decoder variance bounds (standardised units)
 DENOISE_INPUT_CLIP = 3.0  # standard deviations, joint rotations of the denoising networks' input (denoise_input)
 RESIDUAL_CLIP = 3.0  # standard deviations, the clean encoder's residual input (Encoder, residual=True)
+STATE_STD_FLOOR = 1e-3  # the least standard deviation of a state dimension (train.compute_statistics):
+# a dimension at it never moves in the training data (a hinge joint's off axes)
 
 
 # -- the network -------------------------------------------------------------------------------
@@ -328,10 +330,13 @@ class MotionDVAE(nn.Module):
         return self.infer(self.encoder, xn, xn[:, 0], sample=False)[0]
 
     def prior_nll(self, x0: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """(B,) -1/(T-1) sum_t log N(z_t; prior(h_{t-1})), nats per frame (sum over dims)."""
+        """(B,) -1/(T-1) sum_t log N(z_t; prior(h_{t-1})), nats per frame (sum over dims), x0 raw."""
+        return self.prior_nll_normalised(self.normalise(x0), z)
+
+    def prior_nll_normalised(self, x0n: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """:meth:`prior_nll` for the standardised first state x0n (B, S)."""
         if z.shape[1] == 0:
-            return x0.new_zeros(x0.shape[0])
-        x0n = self.normalise(x0)
+            return x0n.new_zeros(x0n.shape[0])
         h = self.gen_features(x0n, z)
         mu, lv = self.prior_params(h[:, :-1])
         nll = 0.5 * (lv + (z - mu) ** 2 * torch.exp(-lv) + math.log(2 * math.pi))

@@ -24,6 +24,7 @@ from priors.motion_dvae.model import (
     NOISE_PRIOR_SHAPE,
     PAPER_CONFIG,
     POINT_WEIGHT,
+    STATE_STD_FLOOR,
 )
 from priors.motion_dvae.states import (
     DENOISE_SIGMA_RANGE,
@@ -49,7 +50,7 @@ def compute_statistics(poses: torch.Tensor, max_windows: int = 20000, seed: int 
         poses = poses[torch.randperm(poses.shape[0], generator=g)[:max_windows]]
     states = pose_to_state(poses)
     flat = states.reshape(-1, STATE_DIM)
-    return {"state_mean": flat.mean(0), "state_std": flat.std(0).clamp_min(1e-3), "x0_mean": states[:, 0].mean(0)}
+    return {"state_mean": flat.mean(0), "state_std": flat.std(0).clamp_min(STATE_STD_FLOOR), "x0_mean": states[:, 0].mean(0)}
 
 
 def _check_windows(w: torch.Tensor, what: str) -> torch.Tensor:

@@ -1,0 +1,83 @@
+"""Replacing some priors' rows of a table with a new run of those priors (:func:`replace_rows`).
+
+When one prior's code or weights change, only its units are stale: the others measured the same
+thing. A run of that prior alone under the same rules (profile, sequences, seed, grid, metrics) gives
+its new row, and :func:`replace_rows` puts it into the table in place of the old one. What crosses
+rows is derived again from the per-sequence values every row keeps: each cell's paired comparisons
+against ``no-prior`` and against the cell's best prior (the best may change). The table's provenance
+keeps its own run and lists, per replacement, the priors and the run they came from.
+
+Used by the quick regression (``BENCHMARK_REGENERATE_PRIORS``, tests/test_quick_tables.py) and by
+``python -m benchmark merge-rows``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+from typing import Mapping
+
+from benchmark.core.work_units import grid_cells
+from benchmark.run.table_derive import add_paired
+
+# what must agree for two tables' rows to be measurements of one protocol on one test set
+SAME = ("table", "protocol", "protocol_version", "profile", "profile_sizes", "seed", "sequences", "spec", "grid",
+        "metrics", "data", "body", "format_version")
+
+
+def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: str = "base") -> dict:
+    """``base`` with every row of ``new`` in place of its prior's row (a prior ``base`` lacks is
+    appended), the paired comparisons and counts derived again. Refuses tables whose rules, profile,
+    sequences, seed, grid, metrics, data or body differ, naming the field; ``source`` and
+    ``base_source`` name the two tables in that message (their files)."""
+    for key in SAME:
+        if base.get(key) != new.get(key):
+            raise ValueError(f"{source}: field {key!r} differs from {base_source}'s ({_short(new.get(key))} against "
+                             f"{_short(base.get(key))}): its rows measure something else; rerun those priors with "
+                             f"{base_source}'s table, profile and seed")
+    replaced = [row["prior"] for row in new["rows"]]
+    if len(set(replaced)) != len(replaced):
+        raise ValueError(f"{source}: a prior has two rows: {replaced}")
+    out = copy.deepcopy(dict(base))
+    by_prior = {row["prior"]: i for i, row in enumerate(out["rows"])}
+    for row in new["rows"]:
+        row = copy.deepcopy(row)
+        if row["prior"] in by_prior:
+            out["rows"][by_prior[row["prior"]]] = row
+        else:
+            out["rows"].append(row)
+        out.setdefault("prior_info", {})[row["prior"]] = copy.deepcopy(new.get("prior_info", {}).get(row["prior"]))
+    cells = grid_cells({"grid": out["grid"]})
+    for row in out["rows"]:
+        for cell in row["cells"]:
+            cell.pop("paired", None)
+    add_paired(out["rows"], cells, out["metrics"], out["seed"])
+
+    all_cells = [c for row in out["rows"] for c in row["cells"]]
+    out["counts"] = {
+        "units_planned": sum(c.get("units", 0) for c in all_cells),
+        "units_done": sum(_units_done(c) for c in all_cells),
+        "cells": len(all_cells),
+        "cells_na": sum(1 for c in all_cells if c.get("na_reason")),
+    }
+    out["unit_devices"] = sorted(set(base.get("unit_devices") or []) | set(new.get("unit_devices") or []))
+    provenance = out.setdefault("provenance", {})
+    timings = provenance.setdefault("timings", {})
+    timings["fit_s"] = math.fsum(c.get("fit_s", 0.0) for c in all_cells)
+    timings["eval_s"] = math.fsum(c.get("eval_s", 0.0) for c in all_cells)
+    timings.pop("wall_s", None)  # two runs: no one wall time
+    provenance.setdefault("rows_replaced", []).append(
+        {"priors": replaced, "provenance": {k: v for k, v in (new.get("provenance") or {}).items() if k != "rows_replaced"}})
+    return out
+
+
+def _units_done(cell: Mapping) -> int:
+    """How many of a cell's units had results (its ``na_reason`` says so when some had none)."""
+    match = re.match(r"incomplete: (\d+) of \d+ units", str(cell.get("na_reason") or ""))
+    return int(match.group(1)) if match else int(cell.get("units", 0))
+
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."

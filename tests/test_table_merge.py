@@ -1,0 +1,72 @@
+"""Replacing one prior's rows of a table with a new run of that prior (benchmark.run.table_merge)."""
+
+import copy
+
+import pytest
+
+from benchmark.run.table_derive import derive_table
+from benchmark.run.table_merge import replace_rows
+from fake_units import PRIORS, FakeExecutor, meta, plan, table_spec
+
+ALL = ["no-prior", *PRIORS]
+
+
+def _tables():
+    """The table of a run of every prior; the same table where hmvae's units were worse (an older
+    adapter: every error x 1.5); and a run of hmvae alone (its new row)."""
+    units = plan(priors=ALL)
+    results = [FakeExecutor()(u) for u in units]
+    full = derive_table(table_spec(), results, meta(units, priors=ALL))
+    old = copy.deepcopy(results)
+    for r in old:
+        if r["prior"] == "hmvae":
+            for row in r["per_sequence"]:
+                row["sums"] = {k: 1.5 * v for k, v in row["sums"].items()}
+    base = derive_table(table_spec(), old, meta(units, priors=ALL))
+    mine = [u for u in units if u.prior == "hmvae"]
+    new = derive_table(table_spec(), [r for r in results if r["prior"] == "hmvae"], meta(mine, priors=["hmvae"]))
+    return full, base, new
+
+
+def test_a_replaced_row_gives_the_table_of_one_run_with_every_paired_comparison_derived_again():
+    full, base, new = _tables()
+    assert base["rows"] != full["rows"]
+    merged = replace_rows(base, new)
+    assert merged["rows"] == full["rows"]  # the row, and every other row's comparisons against it
+    assert [r["prior"] for r in merged["rows"]] == ALL
+    assert merged["counts"] == full["counts"]
+    assert merged["provenance"]["timings"]["fit_s"] == pytest.approx(full["provenance"]["timings"]["fit_s"])
+    assert merged["provenance"]["rows_replaced"][0]["priors"] == ["hmvae"]
+    assert base["rows"] != full["rows"]  # the base is not changed in place
+
+
+def test_rows_of_another_protocol_or_test_set_are_refused_naming_the_field():
+    full, base, new = _tables()
+    for key, value in (("seed", 1), ("sequences", ["s0"]), ("protocol_version", 0)):
+        other = {**new, key: value}
+        with pytest.raises(ValueError, match=f"NEW.json: field '{key}' differs from BASE.json's"):
+            replace_rows(base, other, source="NEW.json", base_source="BASE.json")
+
+
+def test_merge_rows_command_writes_the_merged_table_and_never_replaces_files_unasked(tmp_path, capsys):
+    import json
+
+    from benchmark.cli import main
+
+    full, base, new = _tables()
+    (tmp_path / "base.json").write_text(json.dumps(base))
+    (tmp_path / "new.json").write_text(json.dumps(new))
+    out = tmp_path / "merged"
+    args = ["merge-rows", str(tmp_path / "base.json"), str(tmp_path / "new.json"), "--out", str(out)]
+    assert main(args) == 0
+    merged = json.loads((out / "table1.json").read_text())
+    assert merged["rows"] == json.loads(json.dumps(full["rows"]))
+    assert (out / "table1.md").exists()
+    before = (out / "table1.json").read_text()
+    assert main(args) != 0
+    assert "exist; choose another --out or --stem, or pass --force" in capsys.readouterr().err
+    assert (out / "table1.json").read_text() == before
+    assert main(args + ["--force"]) == 0
+    (tmp_path / "bad.json").write_text("{}")
+    assert main(["merge-rows", str(tmp_path / "bad.json"), str(tmp_path / "new.json"), "--out", str(tmp_path / "o2")]) != 0
+    assert "no field 'rows'" in capsys.readouterr().err
