@@ -6,13 +6,11 @@ spec's ``default_priors`` and compares it with the committed table; ``--update-g
 the committed JSON and Markdown instead (refused under CI). Set ``BENCHMARK_RUNS_DIR`` to a folder
 to keep the work units there (``<dir>/<table>_quick``): a rerun resumes from them, so an
 interrupted regeneration loses nothing, and units made by ``python -m benchmark run <table> --out
-<dir>/<table>_quick`` with the same specification are reused. ``BENCHMARK_REGENERATE_PRIORS=a,b``
-runs only those priors and puts their rows into the committed table in place of the old ones (the
-paired comparisons derived again, :mod:`benchmark.run.table_merge`): after a change that moves only
-their numbers (their weights, their adapter's revision), the other rows' units are still valid.
+<dir>/<table>_quick`` with the same specification are reused. With ``BENCHMARK_REGENERATE_PRIORS=a,b``
+only those priors run, and ``--update-goldens`` puts their rows into the committed table
+(``goldens.check_or_update``).
 """
 
-import json
 import os
 from pathlib import Path
 
@@ -21,9 +19,8 @@ import pytest
 from benchmark.run.catalog import get_profile, load_table_spec
 from benchmark.run.catalog import default_priors
 from benchmark.run.backends.local import default_jobs
-from benchmark.run.table_merge import replace_rows
 from benchmark.run.table_run import run_table
-from goldens import check_or_update
+from goldens import check_or_update, regenerated_priors
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLES = ("table1", "sls", "denoise", "inbetween", "reconstruction")
@@ -36,7 +33,7 @@ def test_quick_table_matches_committed(name, tmp_path, anny_body, update_goldens
     out = Path(runs) / f"{name}_quick" if runs else tmp_path
     spec = load_table_spec(name)
     golden = ROOT / "results" / f"{name}.quick.json"
-    only = [p for p in os.environ.get("BENCHMARK_REGENERATE_PRIORS", "").split(",") if p]
+    only = regenerated_priors()
     priors = [p for p in default_priors(spec) if p in only] if only else default_priors(spec)
     if only and not priors:
         pytest.skip(f"BENCHMARK_REGENERATE_PRIORS={','.join(only)}: none of {name}'s default priors")
@@ -44,8 +41,4 @@ def test_quick_table_matches_committed(name, tmp_path, anny_body, update_goldens
     result = run_table(spec, get_profile("quick", table=name), priors=priors, body=anny_body, device="cpu",
                        seed=0, out_dir=out, backend_options={"jobs": default_jobs("cpu")})
     assert not result["failures"], result["failures"]
-    table = result["table"]
-    if only:  # those priors' rows in the committed table (benchmark.run.table_merge)
-        table = replace_rows(json.loads(golden.read_text()), table, source=f"the run of {', '.join(priors)}",
-                             base_source=str(golden))
-    check_or_update(table, golden, spec, update_goldens)
+    check_or_update(result["table"], golden, spec, update_goldens)

@@ -70,3 +70,24 @@ def test_merge_rows_command_writes_the_merged_table_and_never_replaces_files_una
     (tmp_path / "bad.json").write_text("{}")
     assert main(["merge-rows", str(tmp_path / "bad.json"), str(tmp_path / "new.json"), "--out", str(tmp_path / "o2")]) != 0
     assert "no field 'rows'" in capsys.readouterr().err
+
+
+def test_a_new_rows_other_observation_fingerprint_is_recorded_cell_by_cell():
+    """Another build of the body's cache (another machine) changes the exact hash of an observation
+    that is the same to 0.1 micrometre: recorded per cell, not refused."""
+    full, base, new = _tables()
+    for table in (base, new):  # every prior saw one observation per cell (the fake units hash their prior too)
+        for row in table["rows"]:
+            for j, cell in enumerate(row["cells"]):
+                cell["fingerprint"] = f"{j:064d}"
+    assert replace_rows(base, new)["provenance"]["rows_replaced"][0]["observation_fingerprints_differ"] == []
+    new["rows"][0]["cells"][2]["fingerprint"] = "f" * 64
+    merged = replace_rows(base, new)
+    differ = merged["provenance"]["rows_replaced"][0]["observation_fingerprints_differ"]
+    cell = new["rows"][0]["cells"][2]
+    assert differ == [{"prior": "hmvae", "fps": cell["fps"], "points": cell["points"]}]
+    from goldens import cells_seen_differently  # the committed tables' consistency check
+
+    assert cells_seen_differently(merged) == []  # recorded: not a finding
+    merged["provenance"]["rows_replaced"][0]["observation_fingerprints_differ"] = []
+    assert cells_seen_differently(merged) == [2]

@@ -19,7 +19,7 @@ from benchmark.run.catalog import get_profile, load_table_spec
 from benchmark.run.catalog import default_priors
 from benchmark.run.table_run import run_table
 from benchmark.core.work_units import metric_specs
-from goldens import check_or_update
+from goldens import cells_seen_differently, check_or_update
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLES = ("sls", "denoise", "inbetween", "reconstruction")
@@ -71,12 +71,7 @@ def test_smoke_table_is_well_formed(smoke):
                 assert v is None or v == v, f"{name}/{row['prior']}: {m['name']} is NaN"
     assert served > 0, f"{name}: no prior served any cell"
     # every prior that served a cell saw the same observation
-    by_cell = {}
-    for row in table["rows"]:
-        for i, cell in enumerate(row["cells"]):
-            if not cell.get("na_reason"):
-                by_cell.setdefault(i, set()).add(cell["fingerprint"])
-    assert all(len(v) == 1 for v in by_cell.values()), f"{name}: priors saw different observations in a cell"
+    assert not cells_seen_differently(table), f"{name}: priors saw different observations in a cell"
 
 
 def test_smoke_table_matches_golden(smoke, update_goldens):
@@ -104,10 +99,7 @@ def test_committed_default_profile_table_is_consistent(name):
     assert (ROOT / "results" / f"{name}.quick.md").exists()
     assert table["counts"]["units_done"] == table["counts"]["units_planned"]
     assert set(r["prior"] for r in table["rows"]) <= set(default_priors(spec))
-    by_cell = {}
     for row in table["rows"]:
-        for i, cell in enumerate(row["cells"]):
+        for cell in row["cells"]:
             assert not str(cell.get("na_reason") or "").startswith("incomplete"), (row["prior"], cell)
-            if not cell.get("na_reason"):
-                by_cell.setdefault(i, set()).add(cell["fingerprint"])
-    assert all(len(v) == 1 for v in by_cell.values())
+    assert not cells_seen_differently(table)

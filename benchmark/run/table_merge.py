@@ -40,6 +40,8 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
     if len(set(replaced)) != len(replaced):
         raise ValueError(f"{source}: a prior has two rows: {replaced}")
     out = copy.deepcopy(dict(base))
+    kept = [row for row in base["rows"] if row["prior"] not in replaced]
+    differ = _fingerprints_that_differ(kept, new["rows"], sorted(base["grid"]))
     by_prior = {row["prior"]: i for i, row in enumerate(out["rows"])}
     for row in new["rows"]:
         row = copy.deepcopy(row)
@@ -68,8 +70,25 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
     timings["eval_s"] = math.fsum(c.get("eval_s", 0.0) for c in all_cells)
     timings.pop("wall_s", None)  # two runs: no one wall time
     provenance.setdefault("rows_replaced", []).append(
-        {"priors": replaced, "provenance": {k: v for k, v in (new.get("provenance") or {}).items() if k != "rows_replaced"}})
+        {"priors": replaced, "observation_fingerprints_differ": differ,
+         "provenance": {k: v for k, v in (new.get("provenance") or {}).items() if k != "rows_replaced"}})
     return out
+
+
+def _fingerprints_that_differ(kept: list, new_rows: list, grid_keys) -> list[dict]:
+    """The cells (prior and grid coordinates) where a new row's observation fingerprint differs from
+    the kept rows': an exact hash of float coordinates, which another build of the body's cache
+    (another machine: Anny's differ by up to 4.5e-8 m) changes while the observation is the same to
+    0.1 micrometre. Recorded, not refused: the metrics, and ``fit-check --robustness``'s 1e-6 m
+    probe for the prior, say whether such a difference can move its numbers."""
+    seen: dict[int, set] = {}
+    for row in kept:
+        for j, cell in enumerate(row["cells"]):
+            if cell.get("fingerprint"):
+                seen.setdefault(j, set()).add(cell["fingerprint"])
+    return [{"prior": row["prior"], **{k: cell.get(k) for k in grid_keys}}
+            for row in new_rows for j, cell in enumerate(row["cells"])
+            if cell.get("fingerprint") and seen.get(j) and cell["fingerprint"] not in seen[j]]
 
 
 def _units_done(cell: Mapping) -> int:
