@@ -109,3 +109,17 @@ def test_metric_labels():
     assert metric_label("chamfer_mm") == "Chamfer (mm)"
     assert metric_label("pa_mpjpe_mm") == "PA-MPJPE (mm)"
     assert metric_label("foot_skate_cm") == "Foot skate (cm)"
+
+
+def test_a_table_read_back_from_json_is_written_as_it_was(table, tmp_path):
+    """The JSON lists the grid axes, the profile sizes and the paper's rows sorted; the cells keep the
+    grid order, so the columns (points first), the paper rows and the header come out the same."""
+    from benchmark.core.work_units import grid_axes
+
+    table = {**table, "paper": {"columns": ["100/5", "1000/10"], "chamfer_mm": {"vposer-slerp": [27, 20], "hmvae": [83, 48]}}}
+    paths = write_table(table, tmp_path, formats=("json",))
+    back = json.loads(paths["json"].read_text())
+    assert list(back["grid"]) == sorted(table["grid"]) != list(table["grid"])  # what JSON does to it
+    assert grid_axes(back) == list(table["grid"]) == ["points", "fps"]
+    for fmt in (format_markdown, format_csv, format_latex):
+        assert fmt(back) == fmt(table)

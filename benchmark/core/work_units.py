@@ -100,6 +100,19 @@ def grid_cells(table_spec: Mapping) -> list[dict]:
     return [dict(zip(keys, combo)) for combo in itertools.product(*(grid[k] for k in keys))]
 
 
+def grid_axes(table: Mapping) -> list[str]:
+    """A table's grid axes in its spec's order (the first varying slowest). A table read back from
+    JSON lists them sorted (table1: fps, points); its cells keep the grid order, so the order is the
+    one under which the first row's cells are the product of the axes' values (:func:`grid_cells`).
+    The listed order where none or several fit."""
+    keys = list(table["grid"])
+    cells = table["rows"][0]["cells"] if table.get("rows") else []
+    fits = [list(order) for order in itertools.permutations(keys)
+            if [tuple(c.get(k) for k in order) for c in cells]
+            == list(itertools.product(*(table["grid"][k] for k in order)))]
+    return fits[0] if len(fits) == 1 else keys
+
+
 def table_rules(table_spec: Mapping) -> dict:
     """The rules of a table (everything that changes a unit's result): the spec without its
     presentation keys (:data:`NON_RULE_KEYS`); metrics reduced to their names."""

@@ -26,6 +26,7 @@ from typing import Mapping, Sequence
 from benchmark.core.fit_diagnostics import (BACKWARDS_DEG, CONVERGED_MAX_DECREASE, CONVERGENCE_WINDOW, FLAG, MISORIENTED_DEG,
                                       cell_flagged)
 from benchmark.core.json_io import atomic_write_json, atomic_write_text
+from benchmark.core.work_units import grid_axes
 from benchmark.run.table_derive import NO_PRIOR
 
 log = logging.getLogger(__name__)
@@ -153,7 +154,7 @@ def _paper_rows(table: Mapping, metric: str) -> list[tuple[str, list]]:
     values = paper.get(metric)
     if not values:
         return []
-    grid_keys = list(table["grid"])
+    grid_keys = grid_axes(table)
     cells = [tuple(str(c[k]) for k in grid_keys) for c in table["rows"][0]["cells"]] if table["rows"] else []
     columns = paper.get("columns", [])
     positions = []
@@ -165,7 +166,8 @@ def _paper_rows(table: Mapping, metric: str) -> list[tuple[str, list]]:
             return []
         positions.append(cells.index(coords))
     out = []
-    for prior, numbers in values.items():
+    order = [r["prior"] for r in table["rows"]]  # the table's row order (a table read back from JSON lists the paper's sorted)
+    for prior, numbers in sorted(values.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)):
         if len(numbers) != len(columns):
             log.warning("table %s: paper %s row %r has %d numbers for %d columns; left out",
                         table["table"], metric, prior, len(numbers), len(columns))
@@ -186,7 +188,9 @@ def _header_facts(table: Mapping) -> list[str]:
         f"table `{table['table']}`, protocol version {table['protocol_version']}"
         + (f" ({table['protocol']})" if table.get("protocol") else ""),
         f"profile `{table['profile']}`"
-        + "".join(f", {k} {v}" for k, v in (table.get("profile_sizes") or {}).items()),
+        # sequences and steps first (a table read back from JSON lists its sizes sorted)
+        + "".join(f", {k} {v}" for k, v in sorted((table.get("profile_sizes") or {}).items(),
+                                                   key=lambda kv: kv[0] not in ("sequences", "steps"))),
         f"device `{table['device']}`" + (f" ({prov['gpu']['name']})" if (prov.get("gpu") or {}).get("name") else ""),
         f"seed {table['seed']}",
         f"git {rev_text}",
@@ -195,6 +199,14 @@ def _header_facts(table: Mapping) -> list[str]:
         facts.append(f"data `{table['data']}`")
     if prov.get("timestamp"):
         facts.append(f"made {prov['timestamp']}")
+    for replaced in prov.get("rows_replaced") or []:  # benchmark.run.table_merge
+        p = replaced.get("provenance") or {}
+        r = (p.get("git") or {}).get("revision")
+        facts.append(f"rows of {', '.join(f'`{n}`' for n in replaced['priors'])} replaced by a later run"
+                     + (f" (git {r[:10]}" + (" (uncommitted changes)" if (p.get("git") or {}).get("dirty") else "") + ")" if r else "")
+                     + (f" on {p['cpu']}" if p.get("cpu") else "") + (f", {p['timestamp']}" if p.get("timestamp") else "")
+                     + (f"; its observation fingerprints differ in {len(replaced['observation_fingerprints_differ'])} cell(s) "
+                        "(another build of the body's cache)" if replaced.get("observation_fingerprints_differ") else ""))
     seqs = sorted({c["sequences"] for r in table["rows"] for c in r["cells"] if "sequences" in c})
     frames = sorted({c["frames"] for r in table["rows"] for c in r["cells"] if "frames" in c})
     if seqs:
@@ -218,7 +230,7 @@ def profile_warning(table: Mapping) -> str | None:
 
 def format_markdown(table: Mapping) -> str:
     """The table as Markdown (see the module docstring)."""
-    grid_keys = list(table["grid"])
+    grid_keys = grid_axes(table)
     rows = table["rows"]
     cells = rows[0]["cells"] if rows else []
     labels = [cell_label(c, grid_keys) for c in cells]
@@ -342,7 +354,7 @@ def format_csv(table: Mapping) -> str:
     ``best_prior`` (the cell's best prior by the metric's mean) and ``vs_best_*`` (against it): the
     mean difference this prior minus the other, its interval, ``significant`` (the interval
     excludes 0) and ``better`` (``true`` / ``false``). Empty where it does not apply."""
-    grid_keys = list(table["grid"])
+    grid_keys = grid_axes(table)
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(["table", "protocol_version", "profile", "prior", *grid_keys, "metric", "unit", "value", "std",
@@ -395,7 +407,7 @@ def format_latex(table: Mapping) -> str:
     """A booktabs ``tabular`` of the headline metric (needs ``\\usepackage{booktabs}``): each mean with its
     interval in small type and ``$^\\dagger$`` on a significant win over no-prior, explained in a
     note under the table (tables derived before the intervals: the mean alone)."""
-    grid_keys = list(table["grid"])
+    grid_keys = grid_axes(table)
     rows = table["rows"]
     cells = rows[0]["cells"] if rows else []
     metric = _metrics_in_order(table)[0]
