@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Mapping, Sequence, TextIO
 
 from benchmark.core.json_io import canonical_json
-from benchmark.core.work_units import TABLE_FORMAT_VERSION
+from benchmark.core.work_units import TABLE_FORMAT_VERSION, grid_axes
 from benchmark.run.writers import cell_label
 
 # unit suffix -> default tolerance, in that unit
@@ -95,7 +95,7 @@ def _check_table(table, label: str) -> None:
 
 
 def _index(table: Mapping) -> dict[tuple[str, str], tuple[dict, Mapping]]:
-    keys = list(table["grid"])
+    keys = grid_axes(table)
     out = {}
     for row in table["rows"]:
         for cell in row["cells"]:
