@@ -29,26 +29,25 @@ ACCELERATION = 0.5
 NOT_COMPARED = {"s_per_frame"}
 
 # Cells whose fit is chaotic, measured, with the wider tolerance that covers it: (table, prior,
-# metric) -> tolerance. The embedded Motion-DVAE's in-betweening fit over the 30- and 45-frame gaps
-# amplifies a 3e-8 m perturbation of Anny's body buffers (the size by which two builds of Anny's
-# cache differ) into MPJPE changes of up to 13.8 mm and PA-MPJPE changes of up to 7.9 mm (smoke
-# profile, two perturbation seeds and one fresh cache against the golden), while the 5- and 15-frame
-# gaps moved by under 0.05 mm. A 3 mm tolerance there made CI pass or fail with the cache build. With
-# the residual clean encoder (issue 13; it encodes the observed frames) the 5-frame gap moves too: up
-# to 3.5 mm MPJPE and 3.3 mm PA-MPJPE over two seeds, the longer gaps up to 1.0 mm.
-# The embedded Motion-DVAE's table1 fits (smoke, all six cells, the clean encoder with the residual
-# input of issue 13) are chaotic too: its start is far outside the prior's training data (docs/table1.md,
-# the motion-dvae row), and uniform noise of +-3e-8 m on Anny's blendshapes and template (three seeds,
-# `run_table` on the smoke profile against this golden) moved a cell's MPJPE by up to 141.7 mm and
-# its Chamfer by up to 33.1 mm; one and two torch threads gave the same numbers. Its tolerances cover
-# that spread with a margin: they catch a row that breaks by metres, not a change of centimetres; the
-# other rows keep the table's tolerances.
+# metric) -> tolerance. The embedded Motion-DVAE's in-betweening fit was chaotic under its adapter's
+# revision 1 (a 3e-8 m perturbation of Anny's body buffers, the size by which two builds of Anny's
+# cache differ, moved MPJPE by up to 13.8 mm and PA-MPJPE by up to 7.9 mm; 20 and 12 mm tolerances).
+# Under revision 2 the same perturbation (uniform +-3e-8 m noise on the template and blendshapes, two
+# seeds, smoke profile, Intel Xeon, 2026-12-06) moves no gap by more than 0.0001 mm, so it has the
+# table's tolerances again.
+# The embedded Motion-DVAE's table1 fits (smoke, all six cells) are chaotic too. Under its adapter's
+# revision 1 (its start far outside the prior's training data) uniform noise of +-3e-8 m on Anny's
+# blendshapes and template moved a cell's MPJPE by up to 141.7 mm and its Chamfer by up to 33.1 mm.
+# Revision 2 (docs/table1.md, "Motion-DVAE's adapter revision 2") narrowed it: moving the observation
+# by +1e-6, -1e-6 and +3e-8 m (`data.observation_offset_m`, the smoke profile, against this golden,
+# Intel Xeon, 2026-12-06) moved a cell's MPJPE by up to 37.5 mm and its Chamfer by up to 17.0 mm
+# (both at 10,000 / 5 under -1e-6 m). Its tolerances are twice that: they catch a row that breaks,
+# not a change of a few centimetres; the other rows keep the table's tolerances.
 # The same re-run on the AMD machine moved Motion-DVAE's sls fit at p100 by 3.5 mm MPJPE and 2.0 mm
 # landmark error (its encoder-started fits are chaotic in sls too); they get 10 mm.
-CHAOTIC = {("inbetween", "motion-dvae", "mpjpe_mm"): 20.0, ("inbetween", "motion-dvae", "pa_mpjpe_mm"): 12.0,
-           ("sls", "motion-dvae", "mpjpe_mm"): 10.0, ("sls", "motion-dvae", "landmark_mm"): 10.0,
-           ("table1", "motion-dvae", "mpjpe_mm"): 200.0, ("table1", "motion-dvae", "chamfer_mm"): 50.0,
-           ("table1", "motion-dvae", "chamfer_surface_mm"): 50.0}
+CHAOTIC = {("sls", "motion-dvae", "mpjpe_mm"): 10.0, ("sls", "motion-dvae", "landmark_mm"): 10.0,
+           ("table1", "motion-dvae", "mpjpe_mm"): 75.0, ("table1", "motion-dvae", "chamfer_mm"): 35.0,
+           ("table1", "motion-dvae", "chamfer_surface_mm"): 35.0}
 
 
 # Whole cells whose smoke fits are chaotic, measured: (table, cell coordinates as sorted (key, value)
