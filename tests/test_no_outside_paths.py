@@ -6,9 +6,10 @@ to the checkout, the upper-case protocol brief that used to live there (the proj
 protocol is ``docs/protocol.md``), or an absolute path on a development machine. Every file
 ``git ls-files`` lists is read once; binary files (a NUL byte, or not UTF-8) are skipped.
 
-One recorded field is exempt: ``provenance.command`` of the committed tables ``results/*.json``,
-the command line that made the table as the machine wrote it (the tables are reference data that
-the regression tests guard bit for bit, so they are not edited).
+One recorded field is exempt: ``provenance.command`` of the committed tables ``results/*.json``
+(and of each run in ``provenance.rows_replaced``), the command line that made the table as the
+machine wrote it (the tables are reference data that the regression tests guard bit for bit, so
+they are not edited).
 """
 
 from __future__ import annotations
@@ -54,6 +55,8 @@ def text_of(rel: str) -> str | None:
         table = json.loads(text)
         if isinstance(table.get("provenance"), dict):
             table["provenance"].pop("command", None)
+            for replaced in table["provenance"].get("rows_replaced", []):  # the run a replaced row came from
+                replaced.get("provenance", {}).pop("command", None)
         text = json.dumps(table, ensure_ascii=False)
     return text
 
