@@ -18,7 +18,7 @@ import math
 import re
 from typing import Mapping
 
-from benchmark.core.work_units import grid_cells
+from benchmark.core.work_units import grid_axes, grid_cells
 from benchmark.run.table_derive import add_paired
 
 # what must agree for two tables' rows to be measurements of one protocol on one test set
@@ -41,7 +41,7 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
         raise ValueError(f"{source}: a prior has two rows: {replaced}")
     out = copy.deepcopy(dict(base))
     kept = [row for row in base["rows"] if row["prior"] not in replaced]
-    differ = _fingerprints_that_differ(kept, new["rows"], sorted(base["grid"]))
+    differ = _fingerprints_that_differ(kept, new["rows"], grid_axes(base))
     by_prior = {row["prior"]: i for i, row in enumerate(out["rows"])}
     for row in new["rows"]:
         row = copy.deepcopy(row)
@@ -50,7 +50,8 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
         else:
             out["rows"].append(row)
         out.setdefault("prior_info", {})[row["prior"]] = copy.deepcopy(new.get("prior_info", {}).get(row["prior"]))
-    cells = grid_cells({"grid": out["grid"]})
+    # the grid in its spec's order, as the rows' cells are (a table read back from JSON lists it sorted)
+    cells = grid_cells({"grid": {k: out["grid"][k] for k in grid_axes(out)}})
     for row in out["rows"]:
         for cell in row["cells"]:
             cell.pop("paired", None)
