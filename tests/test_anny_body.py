@@ -105,3 +105,44 @@ def test_a_load_in_another_dtype_leaves_the_cached_body_alone(anny_body):
         assert base(_identity(), torch.zeros(1, 1, 3)).vertices.dtype == torch.float32
     finally:
         _CACHED.pop(("cpu", torch.float64), None)  # the copy is not kept for the rest of the session
+
+
+def test_the_one_gemm_skinning_equals_the_reference_form_values_and_gradients():
+    """shared_rest_blend_skinning (the fits' loss vertices) against linear_blend_skinning: the same
+    posed vertices and the same gradients for the rest vertices and the transforms, up to float32
+    rounding, for a batch of sequences with frames of their own."""
+    from benchmark.body.lbs import linear_blend_skinning, shared_rest_blend_skinning
+
+    g = torch.Generator().manual_seed(3)
+    B, T, V, Jn = 3, 5, 40, 22
+    verts = torch.randn(B, V, 3, generator=g, dtype=torch.float64)
+    weights = torch.rand(V, Jn, generator=g, dtype=torch.float64)
+    weights = weights / weights.sum(-1, keepdim=True)
+    transforms = torch.randn(B, T, Jn, 3, 4, generator=g, dtype=torch.float64)
+    upstream = torch.randn(B, T, V, 3, generator=g, dtype=torch.float64)
+    results = []
+    for form in (lambda v, w, S: linear_blend_skinning(v[:, None], w, S), shared_rest_blend_skinning):
+        v, S = verts.clone().requires_grad_(True), transforms.clone().requires_grad_(True)
+        out = form(v, weights, S)
+        (out * upstream).sum().backward()
+        results.append((out.detach(), v.grad, S.grad))
+    for ref, new in zip(*results):
+        assert new.shape == ref.shape
+        torch.testing.assert_close(new, ref, rtol=1e-12, atol=1e-12)
+
+
+def test_a_posed_vertex_subset_is_the_whole_mesh_posed_and_indexed(anny_body):
+    """AnnyBody.skin with vertex_indices (the one-GEMM form) gives the whole mesh's posed vertices
+    (the reference form) at those indices, to float32 rounding (< 1e-5 m), and the same joints."""
+    g = torch.Generator().manual_seed(0)
+    B, T = 2, 6
+    rot = roma.rotvec_to_rotmat(torch.randn(B, T, 22, 3, generator=g) * 0.4)
+    trans = torch.randn(B, T, 3, generator=g) * 0.5
+    shape = anny_body.default_shape(B) + 0.1 * torch.rand(B, anny_body.shape_dim, generator=g)
+    rest = anny_body.prepare(shape)
+    idx = anny_body.loss_vertex_indices(500)
+    whole = anny_body.skin(rest, rot, trans)
+    subset = anny_body.skin(rest, rot, trans, vertex_indices=idx)
+    assert subset.vertices.shape == (B, T, 500, 3)
+    torch.testing.assert_close(subset.vertices, whole.vertices[:, :, idx], rtol=0, atol=1e-5)
+    torch.testing.assert_close(subset.joints, whole.joints, rtol=0, atol=0)

@@ -25,63 +25,14 @@ from __future__ import annotations
 import json
 import os
 import platform
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
 
-def _sync() -> None:
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
-
-
-_CLOCK = time.process_time  # CPU seconds of this process: robust to other jobs sharing the cores
-
-
-def _timeit(fn, repeats: int = 3) -> float:
-    """Best-of-``repeats`` seconds of ``fn()`` (CPU time on CPU, wall time with CUDA), after one
-    warm-up call."""
-    clock = time.perf_counter if torch.cuda.is_available() else _CLOCK
-    fn()
-    best = float("inf")
-    for _ in range(repeats):
-        _sync()
-        t0 = clock()
-        fn()
-        _sync()
-        best = min(best, clock() - t0)
-    return best
-
-
-# ----------------------------------------------------------------------------- skinning
-
-
-def skinning_perf(device: str = "cpu", frames: int = 240) -> dict:
-    """Embedded body: frames per second, forward and forward+backward, batch of `frames` frames."""
-    import roma
-
-    from benchmark.body.anny_body import load_anny_body
-
-    body = load_anny_body(device)
-    g = torch.Generator().manual_seed(0)
-    rot6 = (torch.randn(1, frames, 22, 3, generator=g) * 0.3).to(device)
-    trans = torch.zeros(1, frames, 3, device=device)
-    shape = body.default_shape(1).to(device)
-
-    def fwd():
-        with torch.no_grad():
-            body(roma.rotvec_to_rotmat(rot6), trans, shape)
-
-    def fwd_bwd():
-        r = rot6.clone().requires_grad_(True)
-        s = shape.clone().requires_grad_(True)
-        out = body(roma.rotvec_to_rotmat(r), trans, s)
-        out.vertices.sum().backward()
-
-    t_f, t_fb = _timeit(fwd), _timeit(fwd_bwd)
-    return {"frames": frames, "vertices": body.num_vertices, "forward_fps": frames / t_f, "forward_backward_fps": frames / t_fb}
+from benchmark.tools.perf_clock import _CLOCK, _timeit
+from benchmark.tools.perf_skinning import skinning_perf, subset_skinning
 
 
 # ----------------------------------------------------------------------------- Chamfer
@@ -311,14 +262,18 @@ def adam_steps_table1(steps: int = 4, prior: str = "no-prior") -> list[dict]:
             obs = degrade(data.scans, int(points), float(fps), seed=stable_seed("perf", points, fps),
                           capture_fps=float(spec["data"]["capture_fps"]))
             batch = observation_batch(obs, float(spec["data"]["window_s"]), data.out_t, "cpu")
-            stamps = []
-            fit(adapter, body, batch, steps=steps + 1, lr=float(spec["objective"]["lr"]),
-                lambda_prior=float(spec["objective"]["lambda_prior"]), generator=torch.Generator().manual_seed(0),
-                device="cpu", loss_vertices=cu.loss_vertex_count(profile),
-                callback=lambda step, loss: stamps.append(_CLOCK()))
-            per_step = float(np.median(np.diff(stamps)))
+            per_step = {}
+            for form in ("reference", "gemm"):
+                stamps = []
+                with subset_skinning(form):
+                    fit(adapter, body, batch, steps=steps + 1, lr=float(spec["objective"]["lr"]),
+                        lambda_prior=float(spec["objective"]["lambda_prior"]), generator=torch.Generator().manual_seed(0),
+                        device="cpu", loss_vertices=cu.loss_vertex_count(profile),
+                        callback=lambda step, loss: stamps.append(_CLOCK()))
+                per_step[form] = float(np.median(np.diff(stamps)))
             rows.append({"cell": f"{points}/{fps}", "sequences": len(ids), "observed_frames": int(batch.points.shape[0] * batch.points.shape[1]),
-                         "loss_vertices": cu.loss_vertex_count(profile), "s_per_step": per_step})
+                         "loss_vertices": cu.loss_vertex_count(profile), "s_per_step": per_step["gemm"],
+                         "s_per_step_reference_skinning": per_step["reference"]})
     return rows
 
 
@@ -406,10 +361,17 @@ def format_report(r: dict) -> str:
         sk = r["skinning"]
         lines += [f"## Skinning ({sk['vertices']} vertices, batch of {sk['frames']}): forward {sk['forward_fps']:.0f} frames/s, "
                   f"forward+backward {sk['forward_backward_fps']:.0f} frames/s", ""]
+        lv = sk.get("loss_vertices")
+        if lv:
+            lines += [f"Loss vertices ({lv['sequences']} sequences x {lv['frames']} frames x {lv['vertices']} vertices), forward + "
+                      f"backward: reference form {lv['reference_s']:.3f} s, one GEMM per sequence {lv['gemm_s']:.3f} s (ratio "
+                      f"{lv['gemm_vs_reference']:.2f}; largest difference {lv['max_abs_diff_m']:.1g} m)", ""]
     if r.get("adam"):
         lines += ["## table1 fit, seconds per Adam step (quick profile, one unit)", "",
-                  "| cell | observed frames | s/step |", "| --- | --- | --- |"]
-        lines += [f"| {a['cell']} | {a['observed_frames']} | {a['s_per_step']:.3f} |" for a in r["adam"]]
+                  "| cell | observed frames | s/step | s/step, reference skinning | ratio |", "| --- | --- | --- | --- | --- |"]
+        lines += [f"| {a['cell']} | {a['observed_frames']} | {a['s_per_step']:.3f} | {_fmt(a.get('s_per_step_reference_skinning'))} | "
+                  f"{_fmt(a['s_per_step'] / a['s_per_step_reference_skinning'], 2) if a.get('s_per_step_reference_skinning') else ''} |"
+                  for a in r["adam"]]
         lines.append("")
     if r.get("cuda"):
         c = r["cuda"]
