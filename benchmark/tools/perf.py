@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 
-from benchmark.tools.perf_clock import _CLOCK, _timeit
+from benchmark.tools.perf_clock import CLOCK, timeit
 from benchmark.tools.perf_skinning import skinning_perf, subset_skinning
 
 
@@ -94,18 +94,18 @@ def chamfer_compare(frames: int = 4, points=(100, 1000, 10000), vertices=(3000, 
                 _baseline_loss(a, b, cKDTree, lambda t, q: t.query(q, workers=1)[1]).backward()
 
             row = {"vertices": n_vertices, "points": n_points, "frames": frames}
-            row["loss_project_ms"] = 1e3 * _timeit(project_loss, repeats) / frames
-            row["loss_ckdtree_ms"] = 1e3 * _timeit(scipy_loss, repeats) / frames
-            row["metric_project_ms"] = 1e3 * _timeit(lambda: chamfer_distance(a.detach(), b), repeats) / frames
-            row["metric_ckdtree_ms"] = 1e3 * _timeit(
+            row["loss_project_ms"] = 1e3 * timeit(project_loss, repeats) / frames
+            row["loss_ckdtree_ms"] = 1e3 * timeit(scipy_loss, repeats) / frames
+            row["metric_project_ms"] = 1e3 * timeit(lambda: chamfer_distance(a.detach(), b), repeats) / frames
+            row["metric_ckdtree_ms"] = 1e3 * timeit(
                 lambda: _baseline_metric(a.detach(), b, cKDTree, lambda t, q: t.query(q, workers=1)[0]), repeats) / frames
             if kd is not None:
                 def pyk_loss():
                     a.grad = None
                     _baseline_loss(a, b, kd, lambda t, q: t.query(q)[1]).backward()
 
-                row["loss_pykdtree_ms"] = 1e3 * _timeit(pyk_loss, repeats) / frames
-                row["metric_pykdtree_ms"] = 1e3 * _timeit(
+                row["loss_pykdtree_ms"] = 1e3 * timeit(pyk_loss, repeats) / frames
+                row["metric_pykdtree_ms"] = 1e3 * timeit(
                     lambda: _baseline_metric(a.detach(), b, kd, lambda t, q: t.query(q)[0]), repeats) / frames
             with torch.no_grad():
                 ref = chamfer_loss(a, b, backend="scipy")
@@ -174,17 +174,17 @@ def surface_compare(n_points: int = 2000, slow_points: int = 200, repeats: int =
 
     v64, p64, f64 = verts.double().numpy(), pts.double().numpy(), faces.numpy()
     res = {"points": n_points, "vertices": int(verts.shape[0]), "faces": int(faces.shape[0])}
-    res["eval_project_ms"] = 1e3 * _timeit(project, repeats)
-    res["eval_reference_ms"] = 1e3 * _timeit(reference, repeats)
+    res["eval_project_ms"] = 1e3 * timeit(project, repeats)
+    res["eval_reference_ms"] = 1e3 * timeit(reference, repeats)
     res["eval_value_diff_m"] = abs(float(project()) - float(reference()))
-    res["exact_project_ms"] = 1e3 * _timeit(lambda: points_to_surface_distance(p64, v64, f64, workers=1), repeats)
+    res["exact_project_ms"] = 1e3 * timeit(lambda: points_to_surface_distance(p64, v64, f64, workers=1), repeats)
     exact = points_to_surface_distance(p64, v64, f64, workers=1)
     try:
         import trimesh
 
         mesh = trimesh.Trimesh(v64, f64, process=False)
         sub = p64[:slow_points]
-        res["trimesh_ms"] = 1e3 * _timeit(lambda: trimesh.proximity.closest_point(mesh, sub), 1) * n_points / slow_points
+        res["trimesh_ms"] = 1e3 * timeit(lambda: trimesh.proximity.closest_point(mesh, sub), 1) * n_points / slow_points
         res["trimesh_max_abs_diff_m"] = float(np.abs(trimesh.proximity.closest_point(mesh, sub)[1] - exact[:slow_points]).max())
     except ImportError as err:  # trimesh.proximity needs rtree
         res["trimesh_ms"] = None
@@ -192,7 +192,7 @@ def surface_compare(n_points: int = 2000, slow_points: int = 200, repeats: int =
     try:
         import igl
 
-        res["libigl_ms"] = 1e3 * _timeit(lambda: igl.point_mesh_squared_distance(p64, v64, f64), repeats)
+        res["libigl_ms"] = 1e3 * timeit(lambda: igl.point_mesh_squared_distance(p64, v64, f64), repeats)
         d2 = igl.point_mesh_squared_distance(p64, v64, f64)[0]
         res["libigl_max_abs_diff_m"] = float(np.abs(np.sqrt(d2) - exact).max())
     except ImportError as err:
@@ -225,8 +225,8 @@ def evaluation_compare(frames: int = 8, repeats: int = 2) -> dict:
     fast = evaluate(body, output, data, "cpu", surface_points=2000)  # also builds the cached scan trees
     ref = evaluate_reference(body, output, data, "cpu", surface_points=2000)
     res = {"frames": n, "surface_points": 2000}
-    res["project_ms"] = 1e3 * _timeit(lambda: evaluate(body, output, data, "cpu", surface_points=2000), repeats) / n
-    res["reference_ms"] = 1e3 * _timeit(lambda: evaluate_reference(body, output, data, "cpu", surface_points=2000), repeats) / n
+    res["project_ms"] = 1e3 * timeit(lambda: evaluate(body, output, data, "cpu", surface_points=2000), repeats) / n
+    res["reference_ms"] = 1e3 * timeit(lambda: evaluate_reference(body, output, data, "cpu", surface_points=2000), repeats) / n
     res["project_vs_reference"] = res["project_ms"] / res["reference_ms"]
     res["max_abs_diff_mm"] = max(abs(x["sums"][m] - y["sums"][m]) * 1e3 / x["frames"]
                                  for x, y in zip(fast, ref) for m in x["sums"])
@@ -269,7 +269,7 @@ def adam_steps_table1(steps: int = 4, prior: str = "no-prior") -> list[dict]:
                     fit(adapter, body, batch, steps=steps + 1, lr=float(spec["objective"]["lr"]),
                         lambda_prior=float(spec["objective"]["lambda_prior"]), generator=torch.Generator().manual_seed(0),
                         device="cpu", loss_vertices=cu.loss_vertex_count(profile),
-                        callback=lambda step, loss: stamps.append(_CLOCK()))
+                        callback=lambda step, loss: stamps.append(CLOCK()))
                 per_step[form] = float(np.median(np.diff(stamps)))
             rows.append({"cell": f"{points}/{fps}", "sequences": len(ids), "observed_frames": int(batch.points.shape[0] * batch.points.shape[1]),
                          "loss_vertices": cu.loss_vertex_count(profile), "s_per_step": per_step["gemm"],
@@ -304,7 +304,7 @@ def cuda_compare(frames: int = 16, n_points: int = 10000, n_vertices: int = 1371
     for name, fn in (("tiled", tiled), ("cdist", cdist)):
         torch.cuda.reset_peak_memory_stats(dev)
         try:
-            res[f"{name}_ms"] = 1e3 * _timeit(fn, 3) / frames
+            res[f"{name}_ms"] = 1e3 * timeit(fn, 3) / frames
             res[f"{name}_peak_mib"] = torch.cuda.max_memory_allocated(dev) / 2**20
         except torch.cuda.OutOfMemoryError:
             res[f"{name}_ms"] = None

@@ -8,27 +8,27 @@ import time
 import torch
 
 
-def _sync() -> None:
+def sync() -> None:
     if torch.cuda.is_available():
         torch.cuda.synchronize()
 
 
-_CLOCK = time.process_time  # CPU seconds of this process: robust to other jobs sharing the cores
+CLOCK = time.process_time  # CPU seconds of this process: robust to other jobs sharing the cores
 
 
-def _timeit(fn, repeats: int = 3) -> float:
+def timeit(fn, repeats: int = 3) -> float:
     """Best-of-``repeats`` seconds of ``fn()`` (CPU time on CPU, wall time with CUDA), after one
     warm-up call."""
-    clock = time.perf_counter if torch.cuda.is_available() else _CLOCK
+    clock = time.perf_counter if torch.cuda.is_available() else CLOCK
     fn()
     best = float("inf")
     for _ in range(repeats):
-        _sync()
+        sync()
         t0 = clock()
         fn()
-        _sync()
+        sync()
         best = min(best, clock() - t0)
     return best
 
 
-__all__ = ["_CLOCK", "_sync", "_timeit"]
+__all__ = ["CLOCK", "sync", "timeit"]

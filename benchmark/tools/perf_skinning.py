@@ -7,7 +7,7 @@ import contextlib
 
 import torch
 
-from benchmark.tools.perf_clock import _timeit
+from benchmark.tools.perf_clock import timeit
 
 
 def skinning_perf(device: str = "cpu", frames: int = 240) -> dict:
@@ -32,7 +32,7 @@ def skinning_perf(device: str = "cpu", frames: int = 240) -> dict:
         out = body(roma.rotvec_to_rotmat(r), trans, s)
         out.vertices.sum().backward()
 
-    t_f, t_fb = _timeit(fwd), _timeit(fwd_bwd)
+    t_f, t_fb = timeit(fwd), timeit(fwd_bwd)
     return {"frames": frames, "vertices": body.num_vertices, "forward_fps": frames / t_f, "forward_backward_fps": frames / t_fb,
             "loss_vertices": loss_vertex_skinning_compare(body, device)}
 
@@ -63,7 +63,7 @@ def loss_vertex_skinning_compare(body, device: str = "cpu", sequences: int = 8, 
             out = form(v, T)
             out.square().sum().backward()
             outs[name] = out.detach()
-        res[f"{name}_s"] = _timeit(step)
+        res[f"{name}_s"] = timeit(step)
     res["gemm_vs_reference"] = res["gemm_s"] / res["reference_s"]
     res["max_abs_diff_m"] = float((outs["gemm"] - outs["reference"]).abs().max())
     return res
