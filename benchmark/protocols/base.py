@@ -44,6 +44,11 @@ class Protocol:
     """
 
     name: str = ""  # the value of a table spec's ``protocol`` field (the registry's name for it)
+    spec_keys: dict | None = None
+    """The keys this protocol accepts in a spec's rule sections, ``{"data": {...}, "objective":
+    {...}}``: the rules it reads and the descriptions its specs carry beside them. The runner refuses
+    a spec with any other key there before any work (:func:`check_spec_keys`): a misspelt or
+    unsupported rule would otherwise be ignored without a word. None (the default): not checked."""
 
     def load_motions(self, spec: dict, data: str | None, body) -> dict:
         """The test motions by id: the synthetic test split (``data`` None) or ``--data``, each
@@ -73,3 +78,27 @@ class Protocol:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"
+
+
+def check_spec_keys(spec: dict, protocol: Protocol) -> None:
+    """Raise ValueError, naming the table's file, the section, the key and the keys accepted, for
+    a key of the spec's ``data`` or ``objective`` section that ``protocol.spec_keys`` does not
+    list (nothing is checked where it is None)."""
+    import difflib
+
+    accepted = getattr(protocol, "spec_keys", None)
+    if not accepted:
+        return
+    where = spec.get("_source") or f"table {spec.get('name')!r} (benchmark/tables/{spec.get('name')}.yaml)"
+    for section, keys in accepted.items():
+        given = spec.get(section) or {}
+        if not isinstance(given, dict):
+            continue
+        for key in given:
+            if key in keys:
+                continue
+            close = difflib.get_close_matches(str(key), sorted(keys), n=1)
+            hint = f"did you mean {section}.{close[0]}? " if close else ""
+            raise ValueError(f"{where}: {section}.{key} is not a rule of protocol {protocol.name!r}, which would ignore it; "
+                             f"{hint}remove or rename it (accepted in {section}: {', '.join(sorted(keys))})")
+

@@ -46,6 +46,13 @@ class CompletionProtocol(ModuleProtocol):
     """Completion of sparse point-cloud sequences (table1; benchmark/protocols/completion_unit.py)."""
 
     name = "completion"
+    spec_keys = {
+        "data": frozenset({"split", "window_s", "window_start_s", "capture_fps", "points_per_frame", "scan_noise_std",
+                           "observation_offset_m"}),  # observation_offset_m: fit-check's perturbation probe
+        "objective": frozenset({"data_term", "lambda_prior", "lr", "optimiser", "schedule", "step_rule", "plateau",
+                                "convergence", "facing", "start_search", "latent_init", "shape_init", "shape_lr_scale",
+                                "translation_init", "outside_observed_span", "multi_start"}),
+    }
 
     def functions(self):
         from benchmark.protocols import completion_unit
@@ -57,6 +64,14 @@ class SlsProtocol(ModuleProtocol):
     """Completion of one-cycle sequences with landmarks (sls; benchmark/protocols/sls.py)."""
 
     name = "sls"
+    spec_keys = {
+        "data": frozenset({"split", "source_fps", "cycles", "cycle_min_s", "cycle_max_s", "cycles_per_motion", "gait_starts",
+                           "anchors", "align", "points_per_scan", "scan_noise_std", "landmarks", "landmark_noise_std"}),
+        "objective": frozenset({"form", "dense", "mocap", "time", "time_term", "adaptive", "lambda_prior", "optimiser", "lr",
+                                "lr_final_fraction", "schedule", "step_rule", "plateau", "start_search", "variables",
+                                "facing", "shape_lr_scale", "latent_init", "convergence", "init_points",
+                                "init_scan_points", "decoding"}),
+    }
 
     def functions(self):
         from benchmark.protocols import sls
@@ -68,6 +83,11 @@ class DenoiseProtocol(ModuleProtocol):
     """Denoising of noisy motion capture (denoise; benchmark/protocols/denoise.py)."""
 
     name = "denoise"
+    spec_keys = {
+        "data": frozenset({"split", "fps", "window_s", "window_start_s", "shape", "observations", "noise", "num_markers"}),
+        "objective": frozenset({"data_term", "lambda_prior", "lr", "optimiser", "schedule", "init", "regression",
+                                "optimisation"}),
+    }
 
     def functions(self):
         from benchmark.protocols import denoise
@@ -79,6 +99,11 @@ class InbetweenProtocol(ModuleProtocol):
     """Filling a gap between key frames (inbetween; benchmark/protocols/inbetween.py)."""
 
     name = "inbetween"
+    spec_keys = {
+        "data": frozenset({"split", "fps", "window_s", "window_start_s", "shape", "observations", "context_frames"}),
+        "objective": frozenset({"data_term", "lambda_prior", "lr", "optimiser", "schedule", "init", "rigid",
+                                "rotation_weight_mm2", "baseline"}),
+    }
 
     def functions(self):
         from benchmark.protocols import inbetween
@@ -90,6 +115,10 @@ class ReconstructionProtocol(ModuleProtocol):
     """Encode, then decode (reconstruction; benchmark/protocols/reconstruction.py)."""
 
     name = "reconstruction"
+    spec_keys = {
+        "data": frozenset({"split", "fps", "window_s", "window_start_s", "shape"}),
+        "objective": frozenset({"method", "no_encoder", "not_encoded"}),
+    }
 
     def functions(self):
         from benchmark.protocols import reconstruction

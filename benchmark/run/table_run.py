@@ -57,14 +57,18 @@ def prior_identity(adapter, size: str, weights: str | None) -> dict:
 def table_protocol(spec):
     """The protocol instance of a table spec: its ``protocol`` field looked up in the protocol
     registry (:mod:`benchmark.protocols.registry`, entry-point group ``benchmark.protocols``); the
-    interface is :class:`benchmark.protocols.base.Protocol`."""
+    interface is :class:`benchmark.protocols.base.Protocol`. A key of the spec's rule sections the
+    protocol does not accept (its ``spec_keys``) is refused here, before any work."""
+    from benchmark.protocols.base import check_spec_keys
     from benchmark.protocols.registry import make_protocol
 
     name = spec.get("protocol")
     try:
-        return make_protocol(name)
+        protocol = make_protocol(name)
     except KeyError as exc:
         raise ValueError(f"{spec.get('_source', spec.get('name'))}: field 'protocol' is {name!r}: {exc.args[0]}") from None
+    check_spec_keys(spec, protocol)
+    return protocol
 
 
 class TableExecutor:
