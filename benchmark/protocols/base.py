@@ -101,4 +101,3 @@ def check_spec_keys(spec: dict, protocol: Protocol) -> None:
             hint = f"did you mean {section}.{close[0]}? " if close else ""
             raise ValueError(f"{where}: {section}.{key} is not a rule of protocol {protocol.name!r}, which would ignore it; "
                              f"{hint}remove or rename it (accepted in {section}: {', '.join(sorted(keys))})")
-
