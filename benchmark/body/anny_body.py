@@ -275,7 +275,7 @@ class AnnyBody(BodyModel):
         trans = trans.to(rest.vertices.dtype)
         S, joints = self._joint_transforms(rest, rotations)
         rest_vertices, weights = rest.vertices, self.weights
-        if vertex_indices is not None and S.dim() == 5 and S.shape[0] == rest_vertices.shape[0]:
+        if vertex_indices is not None and S.shape[0] == rest_vertices.shape[0]:
             # a subset (the fits' loss vertices, every step): one GEMM per sequence, rounded differently
             # from the reference form; the whole mesh (observations, scores) keeps the reference form,
             # so the data and the scores do not depend on this speed path

@@ -45,7 +45,7 @@ def loss_vertex_skinning_compare(body, device: str = "cpu", sequences: int = 8, 
     coordinate difference (m)."""
     import roma
 
-    from benchmark.body.lbs import linear_blend_skinning, shared_rest_blend_skinning
+    from benchmark.body.lbs import shared_rest_blend_skinning
 
     g = torch.Generator().manual_seed(0)
     idx = body.loss_vertex_indices(vertices).to(device)
@@ -54,13 +54,13 @@ def loss_vertex_skinning_compare(body, device: str = "cpu", sequences: int = 8, 
     S, _ = body._joint_transforms(rest, rot)
     S = S.detach()
     v0, w = rest.vertices[:, idx].detach(), body.weights[idx]
-    forms = {"reference": lambda v, T: linear_blend_skinning(v[:, None], w, T), "gemm": lambda v, T: shared_rest_blend_skinning(v, w, T)}
+    forms = {"reference": reference_subset_skinning, "gemm": shared_rest_blend_skinning}
     res = {"sequences": sequences, "frames": frames, "vertices": int(idx.numel())}
     outs = {}
     for name, form in forms.items():
         def step():
             v, T = v0.clone().requires_grad_(True), S.clone().requires_grad_(True)
-            out = form(v, T)
+            out = form(v, w, T)
             out.square().sum().backward()
             outs[name] = out.detach()
         res[f"{name}_s"] = timeit(step)
@@ -69,20 +69,27 @@ def loss_vertex_skinning_compare(body, device: str = "cpu", sequences: int = 8, 
     return res
 
 
+def reference_subset_skinning(vertices: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+    """``shared_rest_blend_skinning``'s signature, computed in the reference form (a 3 x 4 matrix per
+    vertex and frame): the "before" of the side-by-side timings."""
+    from benchmark.body.lbs import linear_blend_skinning
+
+    return linear_blend_skinning(vertices[:, None], weights, transforms)
+
+
 @contextlib.contextmanager
 def subset_skinning(form: str):
     """The Anny body's loss-vertex skinning in ``form``: "gemm" (what the body uses) or "reference"
     (the 3 x 4 matrix per vertex and frame it used before 2026-12-06), for a side-by-side timing."""
     from benchmark.body import anny_body
-    from benchmark.body.lbs import linear_blend_skinning
 
     used = anny_body.shared_rest_blend_skinning
     if form == "reference":
-        anny_body.shared_rest_blend_skinning = lambda v, w, T: linear_blend_skinning(v[:, None], w, T)
+        anny_body.shared_rest_blend_skinning = reference_subset_skinning
     try:
         yield
     finally:
         anny_body.shared_rest_blend_skinning = used
 
 
-__all__ = ["skinning_perf", "loss_vertex_skinning_compare", "subset_skinning"]
+__all__ = ["skinning_perf", "loss_vertex_skinning_compare", "reference_subset_skinning", "subset_skinning"]
