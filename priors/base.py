@@ -83,6 +83,7 @@ and in your package's ``pyproject.toml``, then ``pip install -e .``::
 from __future__ import annotations
 
 import abc
+import contextlib
 import itertools
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -237,6 +238,17 @@ class PriorAdapter(torch.nn.Module, metaclass=abc.ABCMeta):
         otherwise measure.
         """
         return None
+
+    def batch_rows(self, rows: torch.Tensor) -> contextlib.AbstractContextManager:
+        """A context in which :meth:`decode` and :meth:`prior_term` serve the sequences ``rows``
+        ((R,) long) of the batch the adapter was last initialised for (:meth:`init_latents`,
+        ``encode_motion``), given their rows of the latents only. A plateau descent evaluates the
+        sequences still descending this way (``benchmark.protocols.kept_rows``). The default does
+        nothing: right for an adapter whose outputs for a sequence depend on that sequence's inputs
+        only. An adapter that keeps per-batch tensors (e.g. the initial latents its prior term pulls
+        towards) selects their rows here; one that does neither is detected at the start of each fit
+        and evaluated whole."""
+        return contextlib.nullcontext()
 
     @property
     def has_encoder(self) -> bool:

@@ -241,3 +241,45 @@ def test_fit_check_sets_the_rate_scaled_candidate_and_says_so():
     cosine["objective"]["step_rule"] = "cosine"
     with pytest.raises(ValueError, match="--rate-scaled needs table1's plateau step rule"):
         with_rate_scaled(cosine, True)
+
+
+def _rows_problem(scales, targets):
+    """_problem with a ``rows_loss``: the same objective on a subset of the sequences, and a count of
+    the sequence evaluations each way."""
+    x = torch.zeros(len(scales), 2, requires_grad=True)
+    s = torch.tensor(scales)[:, None]
+    c = torch.tensor(targets)[:, None] * torch.tensor([1.0, -0.5])
+    trace, other, evaluated = [], [], []
+
+    def objective(rows):
+        f = 1.0 + (s[rows] * (x[rows] - c[rows]).square()).sum(1)
+        trace.append(f.detach())
+        other.append(2.0 * f.detach())
+        evaluated.append(len(rows))
+        return f.sum(), lambda: {"f": float(trace[-1].mean()), "g": float(other[-1].mean())}
+
+    step_loss = lambda step: objective(torch.arange(len(scales)))  # noqa: E731
+    rows_loss = lambda step, rows: objective(rows)  # noqa: E731
+    return x, trace, other, evaluated, step_loss, rows_loss
+
+
+def test_held_sequences_are_kept_not_evaluated_and_the_fit_is_the_same():
+    """KeptRows: once a sequence is held, the descent evaluates only the others and feeds Adam the
+    held one's kept gradient; the fit, the traces, the history and the verdicts are bit for bit
+    those of evaluating the whole batch, for fewer sequence evaluations."""
+    rule = PlateauRule(window=20, tolerance=0.002, smoothing=5, check_every=5, anneal_steps=10, reductions=2)
+    runs = []
+    for with_rows in (False, True):
+        x, trace, other, evaluated, step_loss, rows_loss = _rows_problem([1.0, 1.0, 0.3], [0.5, 10.0, 4.0])
+        history, log = optimise_to_plateau("toy", [x], 5000, 0.05, 0.1, step_loss, trace, rule,
+                                           rows_loss=rows_loss if with_rows else None, row_traces=(other,))
+        runs.append((x.detach().clone(), torch.stack(trace), torch.stack(other), history, log, evaluated))
+    (x0, t0, o0, h0, l0, n0), (x1, t1, o1, h1, l1, n1) = runs
+    assert len(set(l0["descent_steps"])) == 3  # the sequences stop at three different steps
+    assert torch.equal(x0, x1) and torch.equal(t0, t1) and torch.equal(o0, o1)
+    assert h0 == h1 and l0 == l1
+    steps, (first, second, last) = l0["steps"], sorted(l0["descent_steps"])
+    assert n0 == [3] * steps
+    # a held sequence is evaluated once more at its held point, then kept until the anneal
+    assert n1 == [3] * (first + 1) + [2] * (second - first) + [1] * (last - second - 1) + [3] * (steps - last)
+    assert last - second > 50

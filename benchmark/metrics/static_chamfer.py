@@ -96,6 +96,25 @@ class StaticChamfer:
         self._b_order = [morton_order(pts) for pts in self._b_pts]
         self._b_sorted = [np.ascontiguousarray(pts[o]) for pts, o in zip(self._b_pts, self._b_order)]
 
+    def select(self, elements: torch.Tensor) -> "StaticChamfer":
+        """The StaticChamfer of the elements ``elements`` ((K,) long) of ``b`` only: what this one
+        returns for them, element by element (each element's loss depends on its own points only).
+        The new instance starts its searches from this one's last answers and query order for those
+        elements, so a fit that drops finished sequences from its batch goes on as fast."""
+        idx = elements.to(device=self.b.device, dtype=torch.long)
+        out = StaticChamfer(self.b.index_select(0, idx),
+                            None if self.b_lengths is None else self.b_lengths.index_select(0, idx))
+        if not (out.cached and self.cached):
+            return out
+        rows = idx.cpu().numpy()
+        if self._a_order is not None:
+            out._a_order = [self._a_order[r] for r in rows]
+            if self.grids:
+                out._a_order_arr = np.ascontiguousarray(self._a_order_arr[rows])
+        if self.grids and self._hints is not None:
+            out._hints = tuple(np.ascontiguousarray(h[rows]) for h in self._hints)
+        return out
+
     def indices(self, a: torch.Tensor, al: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         """(idx a->b (N, P), idx b->a (N, Q)) long, -1 at padding, for clean (N, P, 3) ``a``."""
         a_np = a.detach().to(torch.float64).numpy()

@@ -31,7 +31,8 @@ import torch
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.facing import FACING_RULES, facing_search, observed_facing
-from benchmark.protocols.fit_state import FitState, body_parameters, init_state, parameter_groups, repeat_batch
+from benchmark.protocols.fit_state import (FitState, batch_rows, body_parameters, init_state, parameter_groups,
+                                           repeat_batch, rows_independent, state_rows)
 from benchmark.protocols.multi_start import MultiStart, select_copies, vary_copies
 from benchmark.protocols.quasi_newton import OPTIMISERS, lbfgs_to_plateau
 from benchmark.protocols.start_search import (ENCODED_START, START_SEARCH_RULES, is_prior_free, prior_free_start,
@@ -128,16 +129,41 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
             data_term = StaticChamfer(batch.points.flatten(0, 1), batch.lengths.flatten(0, 1))
         facing_log.update(search_log, start_search_s=time.perf_counter() - t_search)
 
+    prior_trace = []  # (B,) prior term of every step: the history's log
+
+    def objective(st: FitState, bt: FitBatch, chamfer: StaticChamfer, record: bool = True):
+        rot, trans = body_parameters(st, bt.timestamps, observed=True)
+        rest = body.prepare(st.shape())
+        verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices  # (R, n, V, 3)
+        data = chamfer(verts.flatten(0, 1), b_sample=points_per_step, generator=sampler).view(bt.batch_size, n)
+        data = data.mean(1) * 1000.0
+        prior = adapter.prior_term(st.latents)
+        value = data + lambda_prior * prior
+        if record:
+            trace.append(data.detach())
+            prior_trace.append(prior.detach())
+            objective_trace.append(value.detach())
+        return value
+
     def step_loss(step):
-        rot, trans = body_parameters(state, batch.timestamps, observed=True)
-        rest = body.prepare(state.shape())
-        verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices  # (B, n, V, 3)
-        data = data_term(verts.flatten(0, 1), b_sample=points_per_step, generator=sampler).view(B, n).mean(1) * 1000.0
-        trace.append(data.detach())
-        prior = adapter.prior_term(state.latents)
-        objective_trace.append((data + lambda_prior * prior).detach())
-        return (data + lambda_prior * prior).sum(), lambda: {"data_mm": float(data.detach().mean()),
-                                                              "prior": float(prior.detach().mean())}
+        value = objective(state, batch, data_term)
+        data, prior = trace[-1], prior_trace[-1]
+        return value.sum(), lambda: {"data_mm": float(data.mean()), "prior": float(prior.mean())}
+
+    def rows_entry():  # a step on some rows: the traces' last entries, which KeptRows.fill completes to the batch
+        return {"data_mm": float(trace[-1].mean()), "prior": float(prior_trace[-1].mean())}
+
+    row_views = {}
+
+    def rows_loss(step, rows):
+        key = tuple(rows.tolist())
+        if key not in row_views:  # a new set of rows still descending: their batch and data term
+            frames = (rows[:, None] * n + torch.arange(n, device=rows.device)).flatten()
+            row_views.clear()
+            row_views[key] = (batch_rows(batch, rows), data_term.select(frames))
+        bt, chamfer = row_views[key]
+        with adapter.batch_rows(rows):
+            return objective(state_rows(state, rows), bt, chamfer).sum(), rows_entry
 
     groups = parameter_groups(state, lr, shape_lr_scale)
     plateau_log = {}
@@ -147,8 +173,10 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     elif plateau is None:
         history = optimise(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, callback=callback)
     else:
+        keep = points_per_step is None and rows_independent(objective, state, batch, data_term)
         history, plateau_log = optimise_to_plateau(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, objective_trace,
-                                                   plateau, callback=callback)
+                                                   plateau, callback=callback, rows_loss=rows_loss if keep else None,
+                                                   row_traces=(trace, prior_trace))
     data_trace = torch.stack(trace) if trace else torch.zeros(0, B)
     if K > 1:  # each sequence keeps its copy with the lowest objective at the last step
         final = objective_trace[-1].detach().cpu().double().view(-1, K)

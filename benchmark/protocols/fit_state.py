@@ -6,8 +6,9 @@ used by the coarse searches (facing, limb start). The optimisers and step rules 
 
 from __future__ import annotations
 
+import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import roma
 import torch
@@ -15,6 +16,8 @@ import torch
 from benchmark.core.interpolate import lerp_frames, slerp_frames
 from benchmark.metrics.static_chamfer import StaticChamfer
 from priors.base import Decoded, FitBatch, PriorAdapter
+
+log = logging.getLogger(__name__)
 
 @dataclass
 class FitState:
@@ -223,6 +226,55 @@ def subset_batch(batch: FitBatch, points: int) -> FitBatch:
     m = min(points, batch.points.shape[2])
     return FitBatch(points=batch.points[:, :, :m], lengths=batch.lengths.clamp_max(m), timestamps=batch.timestamps,
                     window_s=batch.window_s, output_timestamps=batch.output_timestamps)
+
+
+def batch_rows(batch: FitBatch, rows: torch.Tensor) -> FitBatch:
+    """The sequences ``rows`` ((R,) long) of ``batch``."""
+    pick = lambda x: x.index_select(0, rows.to(x.device))  # noqa: E731
+    return FitBatch(points=pick(batch.points), lengths=pick(batch.lengths), timestamps=pick(batch.timestamps),
+                    window_s=batch.window_s, output_timestamps=pick(batch.output_timestamps))
+
+
+def state_rows(state: FitState, rows: torch.Tensor) -> FitState:
+    """The sequences ``rows`` ((R,) long) of ``state``, as tensors indexed from its variables: a
+    loss on them sends its gradient to those rows of ``state``'s variables (zero elsewhere)."""
+    pick = lambda x: None if x is None else x.index_select(0, rows.to(x.device))  # noqa: E731
+    return replace(state, latents={k: pick(v) for k, v in state.latents.items()}, shape_param=pick(state.shape_param),
+                   obs_t=pick(state.obs_t), root=pick(state.root), trans=pick(state.trans),
+                   heading=pick(state.heading), offset=pick(state.offset))
+
+
+@torch.no_grad()
+def rows_independent(objective, state: FitState, batch: FitBatch, chamfer: StaticChamfer) -> bool:
+    """Whether each sequence's value of ``objective(state, batch, chamfer, record=False)`` ((B,))
+    stays the same (to float rounding: 1e-5 relative) when it is evaluated with only some of the
+    others: the condition under which a plateau descent may evaluate only the sequences still
+    descending (:class:`~benchmark.protocols.kept_rows.KeptRows`). Checked once per fit, at its
+    start, on three subsets (all but the first sequence, every other one, the last one), inside
+    the adapter's :meth:`~priors.base.PriorAdapter.batch_rows`; a prior whose sequences interact,
+    or whose per-batch state that context does not select, is then evaluated whole at every step,
+    as before."""
+    B, n = batch.batch_size, batch.num_observed
+    if B < 2:
+        return False
+    whole = objective(state, batch, chamfer, record=False)
+    device = state.shape_param.device
+    for rows in (torch.arange(1, B), torch.arange(0, B, 2), torch.tensor([B - 1])):
+        rows = rows.to(device)
+        frames = (rows[:, None] * n + torch.arange(n, device=device)).flatten()
+        try:
+            with state.adapter.batch_rows(rows):
+                part = objective(state_rows(state, rows), batch_rows(batch, rows), chamfer.select(frames), record=False)
+        except (ValueError, RuntimeError) as err:  # per-batch state the adapter does not select (PriorAdapter.batch_rows)
+            log.info("prior %r: its objective cannot be evaluated on some sequences of the batch (%s); every step "
+                     "evaluates the whole batch", state.adapter.name, err)
+            return False
+        if part.shape != (rows.numel(),) or not torch.allclose(whole[rows], part, rtol=1e-5, atol=1e-6):
+            log.info("prior %r: a sequence's objective changes with the other sequences of the batch (rows %s: %s "
+                     "against %s); every step evaluates the whole batch", state.adapter.name, rows.tolist(),
+                     part.tolist(), whole[rows].tolist())
+            return False
+    return True
 
 
 def repeat_batch(batch: FitBatch, k: int) -> FitBatch:

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
+from benchmark.protocols.kept_rows import KeptRows
 
 LOG_EVERY = 25  # optimisation history: the first, every 25th and the last step
 
@@ -52,12 +53,16 @@ def check_batch_first(prior_name: str, tensors: list, B: int, who: str) -> None:
                          f"batch first ({B} sequences); got shapes {bad}")
 
 
-def adam_step(opt, prior_name: str, step_loss, step: int, history: list, logged: bool, callback=None) -> None:
+def adam_step(opt, prior_name: str, step_loss, step: int, history: list, logged: bool, callback=None,
+              after_backward=None) -> None:
     """One optimiser step of :func:`optimise` and :func:`optimise_to_plateau`: the loss of
     ``step_loss(step)`` and its gradient (:func:`loss_backward`), the step; the history entry when
-    ``logged``; ``callback(step, loss)``."""
+    ``logged``; ``callback(step, loss)``. ``after_backward()``, where given, runs between the
+    gradient and the step and may return the loss to report instead."""
     opt.zero_grad(set_to_none=True)
     loss, log = loss_backward(prior_name, step_loss, step)
+    if after_backward is not None:
+        loss = after_backward()
     opt.step()
     if logged:
         history.append({"step": step, **log()})
@@ -153,7 +158,8 @@ class PlateauRule:
 
 
 def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, lr_final_fraction: float, step_loss,
-                        trace: list, rule: PlateauRule, callback=None) -> tuple[list[dict], dict]:
+                        trace: list, rule: PlateauRule, callback=None, rows_loss=None,
+                        row_traces: tuple = ()) -> tuple[list[dict], dict]:
     """Adam at the constant ``lr``, each sequence stopping at its own plateau
     (:class:`PlateauRule`), then ``rule.anneal_steps`` steps of cosine decay to
     ``lr * lr_final_fraction`` for every sequence.
@@ -168,7 +174,13 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
 
     Returns the history and ``{"steps": total steps, "descent_steps": (B,) list, the step each
     sequence stopped descending at, "plateau_decrease": (B,) list, "converged": (B,) list of bool,
-    "stopped": "plateau" | "cap"}``."""
+    "stopped": "plateau" | "cap"}``.
+
+    ``rows_loss(step, rows)``, where given, is ``step_loss`` on the sequences ``rows`` only, appending
+    (R,) vectors to ``trace`` and to every list of ``row_traces`` (the caller's other per-step
+    traces). The descent then evaluates only the sequences not yet held, and feeds Adam the held
+    ones' objective and gradient kept from their first step at the held point
+    (:class:`~benchmark.protocols.kept_rows.KeptRows`): the same fit for the rows' cost."""
     if max_steps < rule.min_descent + rule.anneal_steps:
         history = optimise(prior_name, parameters, max_steps, lr, lr_final_fraction, step_loss, callback=callback)
         B = int(trace[-1].shape[0]) if trace else 0
@@ -180,13 +192,21 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
     descent_cap = max_steps - rule.anneal_steps
     step = 0
     held = held_on = decrease = stopped_at = snapshot = stage = since = scale_on = None
+    kept = None if rows_loss is None else KeptRows(rows_loss, [trace, *row_traces])
 
     while step < descent_cap:
         before = None
         if scale_on is not None:  # some sequence descends at a reduced rate: its step is scaled below
             before = [p.detach().clone() for p in tensors]
-        adam_step(opt, prior_name, step_loss, step, history, step % LOG_EVERY == 0, callback)
+        held_before = None if held is None else held.clone()
+        if kept is not None and kept.active():  # the held sequences' values and gradients are kept
+            adam_step(opt, prior_name, kept.step_loss, step, history, step % LOG_EVERY == 0, callback,
+                      after_backward=lambda: kept.fill(tensors))
+        else:
+            adam_step(opt, prior_name, step_loss, step, history, step % LOG_EVERY == 0, callback)
         step += 1
+        if kept is not None and held_before is not None:
+            kept.capture(held_before, tensors)
         if before is not None:
             _scale_steps(tensors, before, scale_on)
         if held is None:  # the batch size, known from the first step's objective

@@ -2,8 +2,9 @@
 
 Runs an adapter through a tiny completion table (one short sequence of smooth motion, two cells,
 a few optimiser steps) and reports pass/fail per check: the adapter's declaration, latent shapes,
-decode shapes, finite losses, gradients reaching the latents, determinism under a seed, and
-decoding at arbitrary timestamps where the adapter claims it (continuous priors).
+decode shapes, finite losses, gradients reaching the latents, determinism under a seed,
+decoding at arbitrary timestamps where the adapter claims it (continuous priors), and sequences
+that do not depend on each other (:meth:`priors.base.PriorAdapter.batch_rows`).
 """
 
 from __future__ import annotations
@@ -204,6 +205,43 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
             return "decodes at 5 irregular timestamps"
 
         rep.check("decode at arbitrary timestamps", arbitrary)
+
+    def independent():
+        # two sequences (the toy motion at two degradations): each one's decoded motion and prior
+        # term, evaluated alone inside batch_rows, are what the pair gives it
+        from benchmark.protocols.fit_state import batch_rows, state_rows
+
+        obs = [degrade(scans, 100, 5, seed=s) for s in (1, 2)]
+        pair = observation_batch(PointCloudSequence(points=torch.cat([o.points for o in obs]),
+                                                    lengths=torch.cat([o.lengths for o in obs]),
+                                                    timestamps=torch.cat([o.timestamps for o in obs]),
+                                                    frame_mask=torch.cat([o.frame_mask for o in obs])),
+                                 window_s, out_t.expand(2, -1), "cpu")
+        st = init_state(a, body, pair, torch.Generator().manual_seed(0), "cpu")
+        with torch.no_grad():
+            for v in st.latents.values():  # away from the start, where a prior term may be zero for any batch
+                v.add_(0.05)
+            rot, tr = body_parameters(st, pair.output_timestamps)
+            prior = a.prior_term(st.latents)
+            for i in range(2):
+                rows = torch.tensor([i])
+                try:
+                    with a.batch_rows(rows):
+                        one = state_rows(st, rows)
+                        rot1, tr1 = body_parameters(one, batch_rows(pair, rows).output_timestamps)
+                        prior1 = a.prior_term(one.latents)
+                except (ValueError, RuntimeError) as err:
+                    raise ValueError(f"sequence {i} of a batch of two cannot be decoded alone ({err}); an adapter that "
+                                     "keeps per-batch tensors selects their rows in batch_rows(rows)") from err
+                moved = max(float((rot1 - rot[i:i + 1]).abs().max()), float((tr1 - tr[i:i + 1]).abs().max()),
+                            float((prior1 - prior[i:i + 1]).abs().max() / prior[i].abs().clamp_min(1.0)))
+                if moved > 1e-4:
+                    raise ValueError(f"sequence {i} decoded alone differs from the same sequence in a batch of two by "
+                                     f"{moved:.1e}: decode and prior_term must treat sequences independently, and an "
+                                     "adapter that keeps per-batch tensors selects their rows in batch_rows(rows)")
+        return "each sequence alone (batch_rows) is what the batch gives it"
+
+    rep.check("sequences independent", independent)
 
     if verbose:
         print(f"check-prior {name} ({size}):")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 
 import torch
@@ -154,6 +155,17 @@ class SequentialPrimitivesPrior(MotionEncoder, ExportableDecoder, PaperNetwork, 
                 "one batch at a time"
             )
         return (z - self._z_init.to(z)).square().sum((1, 2))
+
+    @contextlib.contextmanager
+    def batch_rows(self, rows: torch.Tensor):
+        """The prior term of the sequences ``rows`` pulls towards their own initial latents."""
+        z_init = self._z_init
+        if z_init is not None:
+            self._z_init = z_init.index_select(0, rows.to(z_init.device))
+        try:
+            yield
+        finally:
+            self._z_init = z_init
 
     @torch.no_grad()
     def encode_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor) -> dict[str, torch.Tensor]:
