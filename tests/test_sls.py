@@ -361,3 +361,49 @@ def test_a_window_prior_starts_from_the_encoded_prior_free_start(source, cycle_m
     with pytest.raises(ValueError, match="objective.start_search"):
         sls_fit.fit_sls(make_adapter("hmvae"), anny_body, obs, data.anchor_t, 2, {**none, "start_search": "bogus"},
                         torch.Generator().manual_seed(0), "cpu", loss_vertices=1000)
+
+
+@pytest.mark.parametrize("prior", ["no-prior", pytest.param("sequential-primitives", marks=pytest.mark.slow)])
+def test_kept_rows_give_the_whole_batch_fit(source, cycle_motions, anny_body, monkeypatch, prior):
+    """sls under the plateau rule with the held sequences kept (benchmark.protocols.kept_rows): the
+    steps between two updates of the adaptive weights evaluate the rows still descending; the stops,
+    verdicts, weights and variables are the whole batch's (to float rounding)."""
+    from benchmark.protocols.fit_state import rows_independent
+    from benchmark.run.registry import make_adapter
+
+    ids = sorted(cycle_motions)[:1]
+    spec = tiny_spec()
+    data = source.unit_data(ids)
+    one = sls_data.observe(data, spec, "p100", 0, ids)  # points and landmarks: two terms, re-weighted every 10 steps
+    g = torch.Generator().manual_seed(1)
+    shift = torch.tensor([0.0, 0.03, -0.05])[:, None, None, None]  # three sequences, stopping at different steps
+    obs = dataclasses.replace(one, points=one.points.expand(3, -1, -1, -1) + shift,
+                              landmarks=one.landmarks.expand(3, -1, -1, -1) + shift
+                              + 0.01 * torch.randn(3, *one.landmarks.shape[1:], generator=g),
+                              timestamps=one.timestamps.expand(3, -1))
+    anchor_t = data.anchor_t.expand(3, -1)
+    rule = sls_fit.PlateauRule(window=10, tolerance=0.005, smoothing=2, check_every=5, anneal_steps=5, floor=1.0)
+    calls, runs, subsets = [], {}, {False: 0, True: 0}
+    real, real_rows = sls_fit.rows_independent, sls_fit.state_rows
+    monkeypatch.setattr(sls_fit, "rows_independent", lambda *a: calls.append(1) or real(*a))
+    assert real is rows_independent
+    for keep in (False, True):
+        monkeypatch.setattr(sls_fit, "state_rows", lambda st, rows, keep=keep: (subsets.__setitem__(keep, subsets[keep] + 1),
+                                                                               real_rows(st, rows))[1])
+        runs[keep] = sls_fit.fit_sls(make_adapter(prior), anny_body, obs, anchor_t, 300, spec["objective"],
+                                     torch.Generator().manual_seed(0), "cpu", loss_vertices=300, plateau=rule,
+                                     keep_held=keep)
+    (s0, i0), (s1, i1) = runs[False], runs[True]
+    assert len(calls) == 1  # the check runs where rows may be kept
+    assert subsets[False] == 0 and subsets[True] > 3 + 20  # the check's three subsets, then steps on some rows
+    p0, p1 = i0["plateau"], i1["plateau"]
+    assert p0["descent_steps"] == p1["descent_steps"] and p0["converged"] == p1["converged"]
+    assert len(set(p0["descent_steps"])) > 1
+    assert torch.allclose(i0["data_trace"], i1["data_trace"], rtol=1e-4, atol=1e-4)
+    assert all(torch.allclose(torch.tensor(i0["weights"][k]), torch.tensor(i1["weights"][k]), rtol=1e-4)
+               for k in i0["weights"])
+    assert [h["step"] for h in i0["history"]] == [h["step"] for h in i1["history"]]
+    for h0, h1 in zip(i0["history"], i1["history"]):
+        assert h0.keys() == h1.keys() and all(abs(h0[k] - h1[k]) <= 1e-3 * max(1.0, abs(h0[k])) for k in h0)
+    for a, b in zip(s0.parameters(), s1.parameters()):
+        assert torch.allclose(a, b, rtol=1e-3, atol=1e-4)

@@ -32,7 +32,7 @@ from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols.facing import FACING_RULES, facing_search, observed_facing
 from benchmark.protocols.fit_state import (FitState, batch_rows, body_parameters, init_state, parameter_groups,
-                                           repeat_batch, rows_independent, state_rows)
+                                           repeat_batch, row_frames, rows_independent, state_rows)
 from benchmark.protocols.multi_start import MultiStart, select_copies, vary_copies
 from benchmark.protocols.quasi_newton import OPTIMISERS, lbfgs_to_plateau
 from benchmark.protocols.start_search import (ENCODED_START, START_SEARCH_RULES, is_prior_free, prior_free_start,
@@ -48,7 +48,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         callback=None, facing: str = "heading8", shape_lr_scale: float = 1.0,
         points_per_step: int | None = None, latent_init: str = "sample",
         start_search: str = "none", plateau: PlateauRule | None = None,
-        multi_start: MultiStart | None = None, optimiser: str = "adam") -> tuple[FitState, dict]:
+        multi_start: MultiStart | None = None, optimiser: str = "adam", keep_held: bool = True) -> tuple[FitState, dict]:
     """Optimise one batch (see module docstring). Returns the state and a log: ``history`` (the
     logged steps), ``data_trace`` ((steps, B) the data term of every sequence at every step, mm)
     and, with ``facing="search"``, the facing search's choices.
@@ -78,6 +78,12 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     motion encoder), fit :class:`~benchmark.protocols.multi_start.MultiStart`'s copies of every
     sequence side by side and keep, per sequence, the one with the lowest objective at the last step;
     the log's ``multi_start`` holds each copy's final objective and the chosen copy. None: one start.
+
+    ``keep_held``: under ``plateau`` with Adam, each step evaluates only the sequences still
+    descending, the held ones' objective and gradient kept
+    (:class:`~benchmark.protocols.kept_rows.KeptRows`; where the sequences are independent,
+    :func:`~benchmark.protocols.fit_state.rows_independent`). False evaluates the whole batch at
+    every step (the same fit to float rounding; ``perf --only plateau`` times both).
 
     ``optimiser``: ``"adam"`` (every table), or ``"lbfgs"`` (a table1 version 8 candidate, with
     ``plateau`` only): the batched L-BFGS of :mod:`benchmark.protocols.quasi_newton` on the same
@@ -158,9 +164,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     def rows_loss(step, rows):
         key = tuple(rows.tolist())
         if key not in row_views:  # a new set of rows still descending: their batch and data term
-            frames = (rows[:, None] * n + torch.arange(n, device=rows.device)).flatten()
             row_views.clear()
-            row_views[key] = (batch_rows(batch, rows), data_term.select(frames))
+            row_views[key] = (batch_rows(batch, rows), data_term.select(row_frames(rows, n)))
         bt, chamfer = row_views[key]
         with adapter.batch_rows(rows):
             return objective(state_rows(state, rows), bt, chamfer).sum(), rows_entry
@@ -173,7 +178,13 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     elif plateau is None:
         history = optimise(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, callback=callback)
     else:
-        keep = points_per_step is None and rows_independent(objective, state, batch, data_term)
+        def value_of(rows):  # the per-sequence objective of the sequences rows (None: all), for the check
+            if rows is None:
+                return objective(state, batch, data_term, record=False)
+            return objective(state_rows(state, rows), batch_rows(batch, rows), data_term.select(row_frames(rows, n)),
+                             record=False)
+
+        keep = keep_held and points_per_step is None and rows_independent(value_of, adapter, B, state.shape_param.device)
         history, plateau_log = optimise_to_plateau(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, objective_trace,
                                                    plateau, callback=callback, rows_loss=rows_loss if keep else None,
                                                    row_traces=(trace, prior_trace))

@@ -244,34 +244,36 @@ def state_rows(state: FitState, rows: torch.Tensor) -> FitState:
                    heading=pick(state.heading), offset=pick(state.offset))
 
 
+def row_frames(rows: torch.Tensor, n: int) -> torch.Tensor:
+    """The frames (rows of a batch flattened to B x n frames) of the sequences ``rows``."""
+    return (rows[:, None] * n + torch.arange(n, device=rows.device)).flatten()
+
+
 @torch.no_grad()
-def rows_independent(objective, state: FitState, batch: FitBatch, chamfer: StaticChamfer) -> bool:
-    """Whether each sequence's value of ``objective(state, batch, chamfer, record=False)`` ((B,))
-    stays the same (to float rounding: 1e-5 relative) when it is evaluated with only some of the
-    others: the condition under which a plateau descent may evaluate only the sequences still
-    descending (:class:`~benchmark.protocols.kept_rows.KeptRows`). Checked once per fit, at its
-    start, on three subsets (all but the first sequence, every other one, the last one), inside
-    the adapter's :meth:`~priors.base.PriorAdapter.batch_rows`; a prior whose sequences interact,
-    or whose per-batch state that context does not select, is then evaluated whole at every step,
-    as before."""
-    B, n = batch.batch_size, batch.num_observed
+def rows_independent(value_of, adapter: PriorAdapter, B: int, device) -> bool:
+    """Whether each sequence's value of ``value_of(rows)`` (the (R,) per-sequence objective of the
+    sequences ``rows``; None: the (B,) whole batch) stays the same (to float rounding: 1e-5
+    relative) when it is evaluated with only some of the others: the condition under which a
+    plateau descent may evaluate only the sequences still descending
+    (:class:`~benchmark.protocols.kept_rows.KeptRows`). Checked once per fit, at its start, on
+    three subsets (all but the first sequence, every other one, the last one), inside the adapter's
+    :meth:`~priors.base.PriorAdapter.batch_rows`; a prior whose sequences interact, or whose
+    per-batch state that context does not select, is then evaluated whole at every step, as before."""
     if B < 2:
         return False
-    whole = objective(state, batch, chamfer, record=False)
-    device = state.shape_param.device
+    whole = value_of(None)
     for rows in (torch.arange(1, B), torch.arange(0, B, 2), torch.tensor([B - 1])):
         rows = rows.to(device)
-        frames = (rows[:, None] * n + torch.arange(n, device=device)).flatten()
         try:
-            with state.adapter.batch_rows(rows):
-                part = objective(state_rows(state, rows), batch_rows(batch, rows), chamfer.select(frames), record=False)
+            with adapter.batch_rows(rows):
+                part = value_of(rows)
         except (ValueError, RuntimeError) as err:  # per-batch state the adapter does not select (PriorAdapter.batch_rows)
             log.info("prior %r: its objective cannot be evaluated on some sequences of the batch (%s); every step "
-                     "evaluates the whole batch", state.adapter.name, err)
+                     "evaluates the whole batch", adapter.name, err)
             return False
         if part.shape != (rows.numel(),) or not torch.allclose(whole[rows], part, rtol=1e-5, atol=1e-6):
             log.info("prior %r: a sequence's objective changes with the other sequences of the batch (rows %s: %s "
-                     "against %s); every step evaluates the whole batch", state.adapter.name, rows.tolist(),
+                     "against %s); every step evaluates the whole batch", adapter.name, rows.tolist(),
                      part.tolist(), whole[rows].tolist())
             return False
     return True

@@ -25,9 +25,14 @@ class KeptRows:
 
     ``rows_loss(step, rows)``: the step's loss on the sequences ``rows`` ((R,) long, ascending,
     on the variables' device) only, its ``(loss, log)`` as ``step_loss`` returns them, appending
-    (R,) vectors to each list of ``traces``. After the gradient, :meth:`fill` puts the kept rows'
-    values back into each trace's last entry (so every trace keeps (B,) vectors) and their kept
+    to each list of ``traces`` a tensor whose last dimension is the R sequences (a whole step
+    appends it with the B sequences). After the gradient, :meth:`fill` puts the kept rows' values
+    back into each trace's last entry (so every trace keeps whole-batch entries) and their kept
     gradients into the variables' gradients.
+
+    A step whose objective changes for the held sequences too (sls's adaptive weights, updated
+    every few steps) is evaluated whole, and :meth:`capture` keeps the held rows' values and
+    gradients again from it (``refresh``).
     """
 
     def __init__(self, rows_loss, traces: list[list]):
@@ -52,7 +57,7 @@ class KeptRows:
         first trace's last entry, summed) as the loss to report."""
         for trace, kept in zip(self.traces, self.values):
             full = kept.clone()
-            full[self.rows.to(full.device)] = trace[-1].to(full.dtype)
+            full[..., self.rows.to(full.device)] = trace[-1].to(full.dtype)
             trace[-1] = full
         for p, g in zip(tensors, self.grads):
             if g is None:
@@ -64,18 +69,19 @@ class KeptRows:
         return self.traces[0][-1].sum()
 
     @torch.no_grad()
-    def capture(self, held_before: torch.Tensor, tensors: list[torch.Tensor]) -> None:
+    def capture(self, held_before: torch.Tensor, tensors: list[torch.Tensor], refresh: bool = False) -> None:
         """After a step: keep the values and gradients of the sequences that were held before it
-        (``held_before``, (B,) bool) and are not kept yet; the step evaluated them at their held point."""
+        (``held_before``, (B,) bool) and are not kept yet (``refresh``: all of them, after a step
+        evaluated whole because their objective changed); the step evaluated them at their held point."""
         if self.kept is None:
             self.kept = torch.zeros_like(held_before)
             self.values = [torch.zeros_like(trace[-1]) for trace in self.traces]
             self.grads = [None if p.grad is None else torch.zeros_like(p.grad) for p in tensors]
-        new = held_before & ~self.kept
+        new = held_before if refresh else held_before & ~self.kept
         if not bool(new.any()):
             return
         for trace, kept in zip(self.traces, self.values):
-            kept[new.to(kept.device)] = trace[-1][new.to(kept.device)]
+            kept[..., new.to(kept.device)] = trace[-1][..., new.to(kept.device)]
         for p, g in zip(tensors, self.grads):
             if g is not None and p.grad is not None:
                 mask = new.to(p.device)

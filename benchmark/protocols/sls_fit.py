@@ -11,7 +11,8 @@ import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.protocols.facing import facing_search
-from benchmark.protocols.fit_state import FitState, apply_free_rigid, body_parameters, init_state, parameter_groups
+from benchmark.protocols.fit_state import (FitState, apply_free_rigid, body_parameters, init_state, parameter_groups,
+                                           row_frames, rows_independent, state_rows)
 from benchmark.protocols.start_search import START_SEARCH_RULES, is_prior_free, prior_free_start, searched_start
 from benchmark.protocols.step_rules import PlateauRule, optimise, optimise_to_plateau
 from benchmark.protocols.sls_data import Observation
@@ -137,12 +138,17 @@ def sls_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, obj
 
 def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tensor, steps: int, objective: dict,
             generator: torch.Generator, device, loss_vertices: int | None = None,
-            plateau: PlateauRule | None = None) -> tuple[FitState, dict]:
+            plateau: PlateauRule | None = None, keep_held: bool = True) -> tuple[FitState, dict]:
     """Optimise one batch against its observation (see :mod:`benchmark.protocols.sls`).
 
     ``plateau``: the step rule of protocol v4 (:class:`~benchmark.protocols.step_rules.PlateauRule`,
     judged on each sequence's unweighted active data terms plus lambda x prior): ``steps`` is then
-    the cap. None: ``steps`` steps of cosine decay (versions 1-3)."""
+    the cap. None: ``steps`` steps of cosine decay (versions 1-3).
+
+    ``keep_held``: under ``plateau``, the steps between two updates of the adaptive weights evaluate
+    only the sequences still descending (:class:`~benchmark.protocols.kept_rows.KeptRows`; the
+    steps that update the weights, which change every sequence's objective, are evaluated whole).
+    False evaluates the whole batch at every step (the same fit to float rounding)."""
     lr = float(objective["lr"])
     lam = float(objective["lambda_prior"])
     ad = objective.get("adaptive", {}) or {}
@@ -183,25 +189,47 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
     trace = []  # (B,) the unweighted sum of the active data terms at every step (fit diagnostics)
     objective_trace = []  # (B,) that sum plus lambda x prior at every step: the plateau rule (protocol v4)
 
-    def step_loss(step):
-        rot, trans, tau_hat = decode_anchors(state, anchor_t, idx)
-        rest = body.prepare(state.shape())
-        verts = body.skin(rest, rot, trans, vertex_indices=skin_idx).vertices  # (B, n, K, 3)
+    term_trace = []  # (n_terms, B) the unweighted active data terms at every step
+    prior_trace = []  # (B,) the prior term at every step
+    dense_rows = {}
+
+    def terms_of(st: FitState, rows):
+        """The unweighted active terms ((R,) each) and the prior term of the sequences ``rows`` of
+        ``st`` (None: the whole batch, ``st`` is ``state``)."""
+        pick = (lambda x: x) if rows is None else (lambda x: x.index_select(0, rows))  # noqa: E731
+        rot, trans, tau_hat = decode_anchors(st, pick(anchor_t), idx)
+        rest = body.prepare(st.shape())
+        verts = body.skin(rest, rot, trans, vertex_indices=skin_idx).vertices  # (R, n, K, 3)
         pred_lm = verts[:, :, -lm_idx.numel():] if skin_idx is not None else verts.index_select(2, lm_idx)
-        terms = {"mocap": (pred_lm - lm).square().sum(-1).mean((1, 2)) * MOCAP_SCALE}
+        terms = {"mocap": (pred_lm - pick(lm)).square().sum(-1).mean((1, 2)) * MOCAP_SCALE}
         if pts is not None:
             v = verts[:, :, : verts.shape[2] - lm_idx.numel()] if skin_idx is not None else verts
-            terms["dense"] = dense(v.flatten(0, 1)).view(B, n).mean(1) * DENSE_SCALE
+            if rows is None:
+                chamfer = dense
+            else:
+                key = tuple(rows.tolist())
+                if key not in dense_rows:
+                    dense_rows.clear()
+                    dense_rows[key] = dense.select(row_frames(rows, n))
+                chamfer = dense_rows[key]
+            terms["dense"] = chamfer(v.flatten(0, 1)).view(verts.shape[0], n).mean(1) * DENSE_SCALE
         if "time" in terms_used:
-            terms["time"] = (tau_hat.double() - obs_t).square().mean(1).to(verts.dtype) * TIME_SCALE
-        values = [terms[k] for k in terms_used]
+            terms["time"] = (tau_hat.double() - pick(obs_t)).square().mean(1).to(verts.dtype) * TIME_SCALE
+        return [terms[k] for k in terms_used], adapter.prior_term(st.latents)
+
+    def record(values, prior):
         trace.append(sum(v.detach() for v in values))
+        term_trace.append(torch.stack([v.detach() for v in values]))
+        prior_trace.append(prior.detach())
+        objective_trace.append(trace[-1] + lam * prior.detach())
+
+    def step_loss(step):
+        values, prior = terms_of(state, None)
+        record(values, prior)
         if weights.due(step):
             weights.update(torch.stack([v.detach() for v in values]), _latent_grad_norms(values, latents))
-        w = weights.w.to(device=device, dtype=verts.dtype)
+        w = weights.w.to(device=device, dtype=values[0].dtype)
         data = sum(w[i] * values[i] for i in range(len(values)))
-        prior = adapter.prior_term(state.latents)
-        objective_trace.append(trace[-1] + lam * prior.detach())
 
         def log():
             entry = {"prior": float(prior.detach().mean())}
@@ -212,13 +240,35 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
 
         return (data + lam * prior).sum(), log
 
+    def rows_loss(step, rows):  # a step between weight updates (whole_at): the rows still descending
+        with adapter.batch_rows(rows):
+            values, prior = terms_of(state_rows(state, rows), rows)
+        record(values, prior)
+        w = weights.w[:, rows.cpu()].to(device=device, dtype=values[0].dtype)
+        data = sum(w[i] * values[i] for i in range(len(values)))
+
+        def log():  # the traces' last entries, completed to the whole batch (KeptRows.fill)
+            entry = {"prior": float(prior_trace[-1].mean())}
+            for i, k in enumerate(terms_used):
+                entry[k] = float(term_trace[-1][i].mean())
+                entry[f"w_{k}"] = float(weights.w[i].mean())
+            return entry
+
+        return (data + lam * prior).sum(), log
+
+    def value_of(rows):  # the per-sequence objective at the start (unit weights), for the check
+        values, prior = terms_of(state if rows is None else state_rows(state, rows), rows)
+        return sum(values) + lam * prior
+
     params = parameter_groups(state, lr, float(objective.get("shape_lr_scale", 1.0)))  # as table1 v2
     plateau_log = {}
     if plateau is None:
         history = optimise(adapter.name, params, steps, lr, lr_final, step_loss)
     else:
+        keep = keep_held and rows_independent(value_of, adapter, B, device)
         history, plateau_log = optimise_to_plateau(adapter.name, params, steps, lr, lr_final, step_loss, objective_trace,
-                                                   plateau)
+                                                   plateau, rows_loss=rows_loss if keep else None,
+                                                   row_traces=(trace, term_trace, prior_trace), whole_at=weights.due)
     return state, {"history": history, "terms": terms_used, "data_trace": torch.stack(trace) if trace else torch.zeros(0, B),
                    "weights": {k: weights.w[i].tolist() for i, k in enumerate(terms_used)}, **search_log,
                    **({"plateau": plateau_log} if plateau_log else {})}

@@ -159,7 +159,7 @@ class PlateauRule:
 
 def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, lr_final_fraction: float, step_loss,
                         trace: list, rule: PlateauRule, callback=None, rows_loss=None,
-                        row_traces: tuple = ()) -> tuple[list[dict], dict]:
+                        row_traces: tuple = (), whole_at=None) -> tuple[list[dict], dict]:
     """Adam at the constant ``lr``, each sequence stopping at its own plateau
     (:class:`PlateauRule`), then ``rule.anneal_steps`` steps of cosine decay to
     ``lr * lr_final_fraction`` for every sequence.
@@ -180,7 +180,9 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
     (R,) vectors to ``trace`` and to every list of ``row_traces`` (the caller's other per-step
     traces). The descent then evaluates only the sequences not yet held, and feeds Adam the held
     ones' objective and gradient kept from their first step at the held point
-    (:class:`~benchmark.protocols.kept_rows.KeptRows`): the same fit for the rows' cost."""
+    (:class:`~benchmark.protocols.kept_rows.KeptRows`): the same fit for the rows' cost.
+    ``whole_at(step)``, where given, names the steps whose objective changes for every sequence
+    (e.g. re-weighted terms): they are evaluated whole and the held ones' values kept again."""
     if max_steps < rule.min_descent + rule.anneal_steps:
         history = optimise(prior_name, parameters, max_steps, lr, lr_final_fraction, step_loss, callback=callback)
         B = int(trace[-1].shape[0]) if trace else 0
@@ -199,14 +201,15 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
         if scale_on is not None:  # some sequence descends at a reduced rate: its step is scaled below
             before = [p.detach().clone() for p in tensors]
         held_before = None if held is None else held.clone()
-        if kept is not None and kept.active():  # the held sequences' values and gradients are kept
+        whole = whole_at is not None and bool(whole_at(step))
+        if kept is not None and kept.active() and not whole:  # the held sequences' values and gradients are kept
             adam_step(opt, prior_name, kept.step_loss, step, history, step % LOG_EVERY == 0, callback,
                       after_backward=lambda: kept.fill(tensors))
         else:
             adam_step(opt, prior_name, step_loss, step, history, step % LOG_EVERY == 0, callback)
         step += 1
         if kept is not None and held_before is not None:
-            kept.capture(held_before, tensors)
+            kept.capture(held_before, tensors, refresh=whole)
         if before is not None:
             _scale_steps(tensors, before, scale_on)
         if held is None:  # the batch size, known from the first step's objective

@@ -32,6 +32,7 @@ import torch
 
 
 from benchmark.tools.perf_clock import CLOCK, timeit
+from benchmark.tools.perf_plateau import format_plateau, plateau_descent_compare
 from benchmark.tools.perf_skinning import skinning_perf, subset_skinning
 
 
@@ -373,6 +374,8 @@ def format_report(r: dict) -> str:
                   f"{_fmt(a['s_per_step'] / a['s_per_step_reference_skinning'], 2) if a.get('s_per_step_reference_skinning') else ''} |"
                   for a in r["adam"]]
         lines.append("")
+    if r.get("plateau"):
+        lines += format_plateau(r["plateau"])
     if r.get("cuda"):
         c = r["cuda"]
         lines += [f"## CUDA ({c['device']}): tiled {_fmt(c.get('tiled_ms'))} ms/frame, peak {_fmt(c.get('tiled_peak_mib'))} MiB; "
@@ -414,7 +417,7 @@ def _is_perf_md(path: Path) -> bool:
 
 def run_perf(device: str = "cpu", quick: bool = True, out: str | Path = "perf", parts=None) -> dict:
     """Run every comparison (or ``parts``, a subset of chamfer, surface, evaluation, skinning, adam,
-    cuda), print the table, write ``perf.md`` and ``perf.json`` to ``out``; return the figures.
+    cuda, plateau; plateau, a few minutes, only when named), print the table, write ``perf.md`` and ``perf.json`` to ``out``; return the figures.
     ``out`` is checked first (:func:`check_perf_out`)."""
     out = check_perf_out(out)
     parts = set(parts or ("chamfer", "surface", "evaluation", "skinning", "adam", "cuda"))
@@ -437,6 +440,8 @@ def run_perf(device: str = "cpu", quick: bool = True, out: str | Path = "perf", 
             report["skinning"] = skinning_perf(device)
         if "adam" in parts:
             report["adam"] = adam_steps_table1(steps=4 if quick else 10)
+        if "plateau" in parts:
+            report["plateau"] = plateau_descent_compare()
         if "cuda" in parts and device.startswith("cuda"):
             report["cuda"] = cuda_compare()
     finally:
