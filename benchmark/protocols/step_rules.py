@@ -178,7 +178,7 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
 
     ``rows_loss(step, rows)``, where given, is ``step_loss`` on the sequences ``rows`` only, appending
     (R,) vectors to ``trace`` and to every list of ``row_traces`` (the caller's other per-step
-    traces). The descent then evaluates only the sequences not yet held, and feeds Adam the held
+    traces; any shape whose last dimension is the sequences). The descent then evaluates only the sequences not yet held, and feeds Adam the held
     ones' objective and gradient kept from their first step at the held point
     (:class:`~benchmark.protocols.kept_rows.KeptRows`): the same fit for the rows' cost.
     ``whole_at(step)``, where given, names the steps whose objective changes for every sequence
