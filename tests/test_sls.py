@@ -407,3 +407,16 @@ def test_kept_rows_give_the_whole_batch_fit(source, cycle_motions, anny_body, mo
         assert h0.keys() == h1.keys() and all(abs(h0[k] - h1[k]) <= 1e-3 * max(1.0, abs(h0[k])) for k in h0)
     for a, b in zip(s0.parameters(), s1.parameters()):
         assert torch.allclose(a, b, rtol=1e-3, atol=1e-4)
+
+
+def test_the_perturbation_probe_moves_every_observed_point_and_landmark(source, cycle_motions):
+    """data.observation_offset_m (the robustness probe, as table1's) moves the scans and the
+    landmarks the fit sees, and the observation's fingerprint says so."""
+    ids = sorted(cycle_motions)[:1]
+    data = source.unit_data(ids)
+    spec = tiny_spec()
+    base = sls_data.observe(data, spec, "p100", 0, ids)
+    spec["data"]["observation_offset_m"] = 1e-6
+    moved = sls_data.observe(data, spec, "p100", 0, ids)
+    assert torch.equal(moved.points, base.points + 1e-6) and torch.equal(moved.landmarks, base.landmarks + 1e-6)
+    assert torch.equal(moved.timestamps, base.timestamps) and moved.fingerprint != base.fingerprint

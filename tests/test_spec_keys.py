@@ -32,14 +32,19 @@ def test_a_misspelt_rule_is_refused_with_the_file_the_key_and_a_suggestion():
 
 
 def test_a_rule_of_another_protocol_is_refused():
-    """table1's fit-check perturbation (data.observation_offset_m) is not an sls rule: an sls spec
-    carrying it used to run unperturbed, without a word."""
+    """table1's candidate rule objective.multi_start is not an sls rule: an sls spec carrying it
+    would run with one start, without a word. (The perturbation probe data.observation_offset_m,
+    refused by sls before it had one, is now a rule of both.)"""
+    for name in ("table1", "sls"):
+        spec = copy.deepcopy(load_table_spec(name))
+        spec["data"]["observation_offset_m"] = 1e-6
+        table_protocol(spec)
     table1 = copy.deepcopy(load_table_spec("table1"))
-    table1["data"]["observation_offset_m"] = 1e-6
+    table1["objective"]["multi_start"] = {"starts": 2}
     table_protocol(table1)
     sls = copy.deepcopy(load_table_spec("sls"))
-    sls["data"]["observation_offset_m"] = 1e-6
-    with pytest.raises(ValueError, match=r"data\.observation_offset_m is not a rule of protocol 'sls'"):
+    sls["objective"]["multi_start"] = {"starts": 2}
+    with pytest.raises(ValueError, match=r"objective\.multi_start is not a rule of protocol 'sls'"):
         table_protocol(sls)
 
 

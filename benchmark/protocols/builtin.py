@@ -66,7 +66,8 @@ class SlsProtocol(ModuleProtocol):
     name = "sls"
     spec_keys = {
         "data": frozenset({"split", "source_fps", "cycles", "cycle_min_s", "cycle_max_s", "cycles_per_motion", "gait_starts",
-                           "anchors", "align", "points_per_scan", "scan_noise_std", "landmarks", "landmark_noise_std"}),
+                           "anchors", "align", "points_per_scan", "scan_noise_std", "landmarks", "landmark_noise_std",
+                           "observation_offset_m"}),  # the perturbation probe, as table1's
         "objective": frozenset({"form", "dense", "mocap", "time", "time_term", "adaptive", "lambda_prior", "optimiser", "lr",
                                 "lr_final_fraction", "schedule", "step_rule", "plateau", "start_search", "variables",
                                 "facing", "shape_lr_scale", "latent_init", "convergence", "init_points",

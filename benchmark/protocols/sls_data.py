@@ -102,7 +102,10 @@ def observed_anchors(anchors: int, frames: int) -> torch.Tensor:
 
 
 def observe(data: SlsUnitData, spec: dict, code: str, seed: int, ids: list[str]) -> Observation:
-    """The cell's observation: the observed anchors' (sub-sampled) scans and landmarks."""
+    """The cell's observation: the observed anchors' (sub-sampled) scans and landmarks.
+
+    ``data.observation_offset_m`` (a robustness probe, as table1's: never set in a table) moves every
+    observed scan point and landmark by that many metres along each axis; the fingerprint says so."""
     points, frames = sweep_rule(spec, code)
     A = data.anchor_t.shape[1]
     idx = observed_anchors(A, frames)
@@ -123,5 +126,10 @@ def observe(data: SlsUnitData, spec: dict, code: str, seed: int, ids: list[str])
         obs_points = torch.cat(rows)
     for b in range(B):
         prints.append(fingerprint(Landmarks(positions=lm[b:b + 1], timestamps=t[b:b + 1])))
+    offset = float(spec["data"].get("observation_offset_m", 0.0))
+    if offset:  # a robustness probe's move of every scan point and landmark (never set in a table)
+        obs_points = None if obs_points is None else obs_points + offset
+        lm = lm + offset
+        prints.append(f"offset {offset!r}")
     fp = hashlib.sha256("|".join([code, *prints]).encode()).hexdigest()
     return Observation(index=idx, points=obs_points, landmarks=lm, timestamps=t, fingerprint=fp)
