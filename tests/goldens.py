@@ -44,8 +44,11 @@ NOT_COMPARED = {"s_per_frame"}
 # (both at 10,000 / 5 under -1e-6 m). Its tolerances are twice that: they catch a row that breaks,
 # not a change of a few centimetres; the other rows keep the table's tolerances.
 # The same re-run on the AMD machine moved Motion-DVAE's sls fit at p100 by 3.5 mm MPJPE and 2.0 mm
-# landmark error (its encoder-started fits are chaotic in sls too); they get 10 mm.
-CHAOTIC = {("sls", "motion-dvae", "mpjpe_mm"): 10.0, ("sls", "motion-dvae", "landmark_mm"): 10.0,
+# landmark error (its encoder-started fits are chaotic in sls too). sls's own probe (its observation
+# moved by +-1e-6 m, `data.observation_offset_m`, the smoke profile against this golden, Intel Xeon,
+# 2026-12-06; the unmoved run reproduced the golden exactly) moved it by up to 9.4 mm MPJPE and
+# 9.3 mm landmark error at p0 and p100; they get twice that.
+CHAOTIC = {("sls", "motion-dvae", "mpjpe_mm"): 20.0, ("sls", "motion-dvae", "landmark_mm"): 20.0,
            ("table1", "motion-dvae", "mpjpe_mm"): 75.0, ("table1", "motion-dvae", "chamfer_mm"): 35.0,
            ("table1", "motion-dvae", "chamfer_surface_mm"): 35.0}
 
@@ -63,7 +66,12 @@ CHAOTIC = {("sls", "motion-dvae", "mpjpe_mm"): 10.0, ("sls", "motion-dvae", "lan
 # the encoders' basins to the last digits. So f5 guards against a broken path (a NaN, a metric that
 # doubles), not against centimetres; the quick table (8 sequences, fits to their plateau) is the
 # number to read for sparse frames.
-CHAOTIC_CELLS = {("sls", (("sweep", "f5"),)): 0.7}
+# sls p100 (100 points on each of the 100 anchors; `-m slow` only) under the same +-1e-6 m probe
+# (every default prior, Intel Xeon, 2026-12-06): frequency-guided's Chamfer moved by 29 % (85.2 ->
+# 109.5 mm) and its MPJPE by 25 % (155.4 -> 194.8), beyond CROSS_MACHINE's 25 %; the other priors
+# by at most 18 % (Motion-DVAE's Chamfer). Twice the largest: 0.6. p0, the default suite's cell,
+# moved by at most 19 % (the sequential primitives' surface Chamfer), within CROSS_MACHINE.
+CHAOTIC_CELLS = {("sls", (("sweep", "f5"),)): 0.7, ("sls", (("sweep", "p100"),)): 0.6}
 
 
 # Relative tolerances for the spread between machines: (table, metric) -> a fraction of the golden

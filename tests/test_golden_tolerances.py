@@ -47,11 +47,16 @@ def test_sls_smoke_cross_machine():
 
 def test_a_chaotic_sls_cell_passes_its_measured_spread_and_no_other_cell_does():
     """sls f5's measured move on another CPU (the sequential primitives' landmark error 71.5 -> 115.4
-    mm) passes there, within CHAOTIC_CELLS' fraction; the same move in p100 does not, nor a doubling in f5."""
-    f5 = {"sweep": "f5"}
-    assert CHAOTIC_CELLS[("sls", (("sweep", "f5"),))] < 1.0
+    mm) passes there, within CHAOTIC_CELLS' fraction; the same move in p100 does not, nor a doubling
+    in f5, nor in p0. p100's own measured move under a 1e-6 m probe (frequency-guided's Chamfer
+    85.2 -> 109.5 mm) passes there and not in p0."""
+    f5, p100 = {"sweep": "f5"}, {"sweep": "p100"}
+    assert CHAOTIC_CELLS[("sls", (("sweep", "f5"),))] < 1.0 and CHAOTIC_CELLS[("sls", (("sweep", "p100"),))] < 1.0
     assert accepted("sls", _row("landmark_mm", 71.5, 115.4, prior="sequential-primitives", cell=f5))
-    assert not accepted("sls", _row("landmark_mm", 71.5, 115.4, prior="sequential-primitives", cell={"sweep": "p100"}))
+    assert not accepted("sls", _row("landmark_mm", 71.5, 115.4, prior="sequential-primitives", cell=p100))
+    assert accepted("sls", _row("chamfer_mm", 85.2, 109.5, prior="frequency-guided", cell=p100))
+    assert not accepted("sls", _row("chamfer_mm", 85.2, 109.5, prior="frequency-guided", cell={"sweep": "p0"}))
+    assert not accepted("sls", _row("chamfer_mm", 85.2, 170.4, prior="frequency-guided", cell=p100))
     assert not accepted("sls", _row("chamfer_mm", 28.9, 57.8, prior="vposer-slerp", cell=f5))
     assert not accepted("table1", _row("chamfer_mm", 28.9, 45.6, prior="vposer-slerp", cell=f5))
 
