@@ -400,7 +400,7 @@ def test_kept_rows_give_the_whole_batch_fit(source, cycle_motions, anny_body, mo
         monkeypatch.setattr(sls_fit, "state_rows", lambda st, rows, keep=keep: (subsets.__setitem__(keep, subsets[keep] + 1),
                                                                                real_rows(st, rows))[1])
         runs[keep] = sls_fit.fit_sls(make_adapter(prior), anny_body, obs, anchor_t, 300, spec["objective"],
-                                     torch.Generator().manual_seed(0), "cpu", loss_vertices=300, plateau=rule,
+                                     torch.Generator().manual_seed(0), "cpu", loss_vertices=100, plateau=rule,
                                      keep_held=keep)
     (_, i0), (_, i1) = runs[False], runs[True]
     p0, p1 = i0["plateau"], i1["plateau"]
