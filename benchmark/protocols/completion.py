@@ -161,12 +161,15 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
 
     row_views = {}
 
-    def rows_loss(step, rows):
+    def rows_view(rows):  # the batch and data term of the sequences rows, kept while the rows stay
         key = tuple(rows.tolist())
-        if key not in row_views:  # a new set of rows still descending: their batch and data term
+        if key not in row_views:
             row_views.clear()
             row_views[key] = (batch_rows(batch, rows), data_term.select(row_frames(rows, n)))
-        bt, chamfer = row_views[key]
+        return row_views[key]
+
+    def rows_loss(step, rows):
+        bt, chamfer = rows_view(rows)
         with adapter.batch_rows(rows):
             return objective(state_rows(state, rows), bt, chamfer).sum(), rows_entry
 
@@ -181,8 +184,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         def value_of(rows):  # the per-sequence objective of the sequences rows (None: all), for the check
             if rows is None:
                 return objective(state, batch, data_term, record=False)
-            return objective(state_rows(state, rows), batch_rows(batch, rows), data_term.select(row_frames(rows, n)),
-                             record=False)
+            return objective(state_rows(state, rows), *rows_view(rows), record=False)
 
         keep = keep_held and points_per_step is None and rows_independent(value_of, adapter, B, state.shape_param.device)
         history, plateau_log = optimise_to_plateau(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, objective_trace,

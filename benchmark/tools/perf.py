@@ -32,7 +32,7 @@ import torch
 
 
 from benchmark.tools.perf_clock import CLOCK, timeit
-from benchmark.tools.perf_plateau import format_plateau, plateau_descent_compare
+from benchmark.tools.perf_plateau import cell_batch, format_plateau, plateau_descent_compare, quick_unit
 from benchmark.tools.perf_skinning import skinning_perf, subset_skinning
 
 
@@ -240,29 +240,16 @@ def evaluation_compare(frames: int = 8, repeats: int = 2) -> dict:
 def adam_steps_table1(steps: int = 4, prior: str = "no-prior") -> list[dict]:
     """Seconds per Adam step of the completion fit in each table1 cell, quick-profile sizes
     (its sequences, loss vertices and batch), one unit per cell; the heading search excluded."""
-    from benchmark.body import get_body
-    from benchmark.run.catalog import get_profile, load_table_spec
-    from benchmark.data.degrade import degrade
     from benchmark.protocols import completion_unit as cu
-    from benchmark.protocols.completion import fit, observation_batch
+    from benchmark.protocols.completion import fit
     from benchmark.run.registry import make_adapter
-    from benchmark.data.table_data import load_motions
-    from benchmark.core.work_units import select_sequences, stable_seed
 
-    spec = load_table_spec("table1")
-    profile = get_profile("quick", table="table1")
-    body = get_body("anny")
-    motions = load_motions(None, float(spec["data"]["window_s"]), body)
-    ids = select_sequences(motions, profile["sequences"])[: int(profile["batch_sequences"])]
-    source = cu.make_source(spec, body, motions, 0)
-    data = source.unit_data(ids)
+    spec, profile, body, data = quick_unit()
     adapter = make_adapter(prior, size="embedded", weights=None, device="cpu")
     rows = []
     for points in spec["grid"]["points"]:
         for fps in spec["grid"]["fps"]:
-            obs = degrade(data.scans, int(points), float(fps), seed=stable_seed("perf", points, fps),
-                          capture_fps=float(spec["data"]["capture_fps"]))
-            batch = observation_batch(obs, float(spec["data"]["window_s"]), data.out_t, "cpu")
+            batch = cell_batch(spec, data, points, fps)
             per_step = {}
             for form in ("reference", "gemm"):
                 stamps = []
@@ -272,7 +259,7 @@ def adam_steps_table1(steps: int = 4, prior: str = "no-prior") -> list[dict]:
                         device="cpu", loss_vertices=cu.loss_vertex_count(profile),
                         callback=lambda step, loss: stamps.append(CLOCK()))
                 per_step[form] = float(np.median(np.diff(stamps)))
-            rows.append({"cell": f"{points}/{fps}", "sequences": len(ids), "observed_frames": int(batch.points.shape[0] * batch.points.shape[1]),
+            rows.append({"cell": f"{points}/{fps}", "sequences": batch.batch_size, "observed_frames": int(batch.points.shape[0] * batch.points.shape[1]),
                          "loss_vertices": cu.loss_vertex_count(profile), "s_per_step": per_step["gemm"],
                          "s_per_step_reference_skinning": per_step["reference"]})
     return rows

@@ -10,29 +10,45 @@ import torch
 from benchmark.tools.perf_clock import CLOCK
 
 
-def plateau_descent_compare(prior: str = "sequential-primitives", points: int = 100, fps: int = 5) -> dict:
-    """CPU seconds of the descent (the first to the last Adam step; the start search, shared
-    through its cache, is left out) of ``prior``'s quick table1 unit at ``points`` / ``fps``, under
-    the committed table1 rules, evaluating the whole batch at every step and keeping the held
-    sequences; the steps, each sequence's stop and the largest difference of the final data terms."""
+def quick_unit():
+    """table1's spec, its quick profile, the body, and the data of the quick profile's first unit
+    (its sequences): what perf's fit rows time."""
     from benchmark.body import get_body
-    from benchmark.core.work_units import select_sequences, stable_seed
-    from benchmark.data.degrade import degrade
+    from benchmark.core.work_units import select_sequences
     from benchmark.data.table_data import load_motions
     from benchmark.protocols import completion_unit as cu
-    from benchmark.protocols.completion import fit, observation_batch
     from benchmark.run.catalog import get_profile, load_table_spec
-    from benchmark.run.registry import make_adapter
 
     spec = load_table_spec("table1")
     profile = get_profile("quick", table="table1")
     body = get_body("anny")
     motions = load_motions(None, float(spec["data"]["window_s"]), body)
     ids = select_sequences(motions, profile["sequences"])[: int(profile["batch_sequences"])]
-    data = cu.make_source(spec, body, motions, 0).unit_data(ids)
-    obs = degrade(data.scans, points, float(fps), seed=stable_seed("perf", points, fps),
+    return spec, profile, body, cu.make_source(spec, body, motions, 0).unit_data(ids)
+
+
+def cell_batch(spec: dict, data, points: int, fps: int):
+    """The fit batch of ``data``'s sequences degraded to ``points`` / ``fps`` (perf's own seed)."""
+    from benchmark.core.work_units import stable_seed
+    from benchmark.data.degrade import degrade
+    from benchmark.protocols.completion import observation_batch
+
+    obs = degrade(data.scans, int(points), float(fps), seed=stable_seed("perf", points, fps),
                   capture_fps=float(spec["data"]["capture_fps"]))
-    batch = observation_batch(obs, float(spec["data"]["window_s"]), data.out_t, "cpu")
+    return observation_batch(obs, float(spec["data"]["window_s"]), data.out_t, "cpu")
+
+
+def plateau_descent_compare(prior: str = "sequential-primitives", points: int = 100, fps: int = 5) -> dict:
+    """CPU seconds of the descent (the first to the last Adam step; the start search, shared
+    through its cache, is left out) of ``prior``'s quick table1 unit at ``points`` / ``fps``, under
+    the committed table1 rules, evaluating the whole batch at every step and keeping the held
+    sequences; the steps, each sequence's stop and the largest difference of the final data terms."""
+    from benchmark.protocols import completion_unit as cu
+    from benchmark.protocols.completion import fit
+    from benchmark.run.registry import make_adapter
+
+    spec, profile, body, data = quick_unit()
+    batch = cell_batch(spec, data, points, fps)
     obj = spec["objective"]
     adapter = make_adapter(prior, size="embedded", weights=None, device="cpu")
     runs = {}
@@ -51,7 +67,7 @@ def plateau_descent_compare(prior: str = "sequential-primitives", points: int = 
     # sequence-steps the whole batch computes in the descent, and those the held sequences needed
     total = len(descent) * int(descent.max())
     needed = int(np.minimum(descent + 1, descent.max()).sum())
-    return {"prior": prior, "cell": f"{points}/{fps}", "sequences": len(ids), "steps": [whole["steps"], kept["steps"]],
+    return {"prior": prior, "cell": f"{points}/{fps}", "sequences": batch.batch_size, "steps": [whole["steps"], kept["steps"]],
             "descent_steps": [whole["descent_steps"], kept["descent_steps"]], "whole_s": whole["s"], "kept_s": kept["s"],
             "kept_vs_whole": kept["s"] / whole["s"], "descent_rows_needed": needed / total,
             "max_final_data_diff_mm": float((whole["final_data_mm"] - kept["final_data_mm"]).abs().max())}
