@@ -76,6 +76,12 @@ class Protocol:
 
         return estimate_cost(unit)
 
+    def carry_problem(self, spec: dict) -> str | None:
+        """Why a unit of this table whose every fit converged under a step cap could still change
+        under a larger cap, or None where it cannot: its stored result is then carried over when the
+        cap rises instead of computed again (:mod:`benchmark.run.cap_carry`). Default: not declared."""
+        return f"protocol {self.name or type(self).__name__!r} does not declare its fits independent of the step cap"
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"
 

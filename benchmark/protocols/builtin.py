@@ -1,7 +1,7 @@
 """The project's own protocols, as :class:`~benchmark.protocols.base.Protocol` classes.
 
 Each is a thin wrapper of its protocol module's functions (``make_source``, ``run_unit`` and, where
-the module has them, ``load_motions``, ``na_reason``, ``unit_cost``); the module docstrings give the
+the module has them, ``load_motions``, ``na_reason``, ``unit_cost``, ``carry_problem``); the module docstrings give the
 rules in full. They register in the entry-point group ``benchmark.protocols`` (``pyproject.toml``),
 exactly as another package's protocol would; importing this module imports none of the protocol
 modules (each is imported on a protocol's first use).
@@ -34,6 +34,10 @@ class ModuleProtocol(Protocol):
 
     def run_unit(self, unit, spec: dict, profile: dict, adapter, body, source, device) -> dict:
         return self.functions().run_unit(unit, spec, profile, adapter, body, source, device)
+
+    def carry_problem(self, spec: dict) -> str | None:
+        module = self.functions()
+        return module.carry_problem(spec) if hasattr(module, "carry_problem") else super().carry_problem(spec)
 
     def unit_cost(self, unit, spec: dict, profile: dict) -> float:
         module = self.functions()

@@ -114,6 +114,7 @@ from benchmark.protocols.completion_unit import evaluate, loss_vertex_count, pla
 from benchmark.protocols.sls_cycles import align_first_anchor, cut_cycles
 from benchmark.protocols.sls_data import Observation, SlsData, SlsUnitData, observe
 from benchmark.protocols.sls_fit import decode_anchors, fit_sls, uses_anchor_decoder
+from benchmark.protocols.step_rules import cap_independent_problem
 from benchmark.data.unit_arrays import ground_truth_pose
 
 log = logging.getLogger(__name__)
@@ -167,6 +168,11 @@ def source_motions(data: str | None, body) -> dict:
 # ============================================================================ the protocol module
 def make_source(spec: dict, body, motions_by_id: dict, seed: int) -> SlsData:
     return SlsData(spec, body, motions_by_id, seed)
+
+
+def carry_problem(spec: dict) -> str | None:
+    """Whether a converged unit carries over to a larger step cap (:mod:`benchmark.run.cap_carry`): as table1's."""
+    return cap_independent_problem(spec["objective"])
 
 
 def na_reason(spec: dict, adapter) -> str | None:

@@ -269,6 +269,24 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
     return history, out
 
 
+def cap_independent_problem(objective) -> str | None:
+    """Why a fit under the rules ``objective`` (a spec's section) could depend on the step cap
+    before reaching it, or None where a fit whose every sequence converged is the same computation
+    under any larger cap: :func:`optimise_to_plateau` reads the cap only to end the descent
+    (:mod:`benchmark.run.cap_carry` carries such units over when a profile's cap rises)."""
+    rule = str(objective.get("step_rule", "cosine"))
+    if rule != "plateau":
+        return f"its step rule is {rule!r}, a schedule over the profile's steps"
+    if str(objective.get("optimiser", "adam")) != "adam":
+        return f"its optimiser is {objective.get('optimiser')!r}; only Adam's plateau descent is declared cap-independent"
+    starts = (objective.get("multi_start") or {}).get("starts", 1)
+    if int(starts) > 1:
+        return "it keeps the best of several starts, and the choice depends on every copy's end"
+    if int((objective.get("plateau") or {}).get("min_steps", 0)) > 0:
+        return "its plateau rule holds no fit before a minimum step count"
+    return None
+
+
 @torch.no_grad()
 def _scale_steps(tensors: list, before: list, scale: torch.Tensor) -> None:
     """Scale each sequence's last optimiser step by ``scale`` (B,): its own learning rate (Adam's

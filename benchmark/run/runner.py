@@ -14,6 +14,10 @@ Resume policies:
   damaged) is moved aside to ``units/stale/<unit_id>.<old_hash[:8]>.json`` and the unit is rerun.
 - ``"never"``: every unit is rerun; existing files are moved aside the same way first.
 
+Under ``"only-missing"``, a stored unit made under a smaller step cap whose every fit converged before
+it is carried over instead of rerun, where the table's protocol allows it (``carry``;
+:mod:`benchmark.run.cap_carry`): the same computation under any larger cap.
+
 Before any unit runs, :func:`run_units` prints one line saying how many units it reuses, computes
 and moved aside (and why); the counts are in the :class:`RunReport` (the table run stores them in
 its provenance).
@@ -40,6 +44,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from benchmark.run.backends import BACKENDS, Backend
+from benchmark.run.cap_carry import carry_problem, carry_unit
 from benchmark.data.unit_arrays import ARRAYS_KEY, arrays_path, write_arrays
 from benchmark.core.json_io import atomic_write_json
 from benchmark.core.work_units import WorkUnit, checksum_problem, unit_path, validate_unit_result, with_checksum
@@ -60,6 +65,8 @@ class RunReport:
 
     results: unit_id -> result dict, for every unit that is done (reused or run), in plan order.
     reused / ran: unit ids reused from disk / executed now (and stored).
+    carried: unit ids made under a smaller step cap and carried over (:mod:`benchmark.run.cap_carry`;
+        also in ``reused``).
     failed: unit_id -> "ExceptionType: message" for units that raised or returned an invalid
         result; nothing was stored for them.
     moved: paths of stale files moved aside under ``units/stale/``.
@@ -67,6 +74,7 @@ class RunReport:
 
     results: dict[str, dict] = field(default_factory=dict)
     reused: list[str] = field(default_factory=list)
+    carried: list[str] = field(default_factory=list)
     ran: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
     moved: list[Path] = field(default_factory=list)
@@ -88,7 +96,7 @@ class RunReport:
         for why in self.moved_why.values():
             key = why.split(" (", 1)[0]
             reasons[key] = reasons.get(key, 0) + 1
-        return {"reused": len(self.reused), "recomputed": len(self.ran) + len(self.failed), "ran": len(self.ran),
+        return {"reused": len(self.reused), "carried": len(self.carried), "recomputed": len(self.ran) + len(self.failed), "ran": len(self.ran),
                 "failed": len(self.failed), "moved_aside": len(self.moved), "moved_aside_reasons": reasons}
 
     def summary(self) -> str:
@@ -123,25 +131,50 @@ def move_aside(path: Path, unit_id: str, old_hash: str | None) -> Path:
     return target
 
 
-def _read_stored(path: Path, unit: WorkUnit) -> tuple[dict | None, str | None, str | None]:
-    """(valid result or None, the stored spec hash or None, why it is not reusable)."""
+SPEC_DIFFERS = "spec hash differs"
+
+
+def _read_stored(path: Path, unit: WorkUnit) -> tuple[dict | None, str | None, str | None, dict | None]:
+    """(valid result or None, the stored spec hash or None, why it is not reusable, the stored
+    record as read where it was readable)."""
     try:
         stored = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
-        return None, None, f"unreadable ({exc})"
+        return None, None, f"unreadable ({exc})", None
     old_hash = stored.get("spec_hash") if isinstance(stored, dict) else None
     if not isinstance(old_hash, str):
         old_hash = None
     if old_hash != unit.spec_hash:
-        return None, old_hash, "spec hash differs (its inputs, rules, sizes, weights or seed changed)"
+        return None, old_hash, f"{SPEC_DIFFERS} (its inputs, rules, sizes, weights or seed changed)", stored
     try:
         validate_unit_result(stored, unit, source=str(path))
     except ValueError as exc:
-        return None, old_hash, f"invalid ({exc})"
+        return None, old_hash, f"invalid ({exc})", stored
     problem = checksum_problem(stored)
     if problem:
-        return None, old_hash, f"checksum mismatch ({problem})"
-    return stored, old_hash, None
+        return None, old_hash, f"checksum mismatch ({problem})", stored
+    return stored, old_hash, None, stored
+
+
+def _carry(path: Path, unit: WorkUnit, raw: dict | None, old_hash: str | None, carry, out_dir,
+           report: "RunReport") -> tuple[dict | None, str | None]:
+    """The stored ``raw`` carried over to ``unit`` (moved aside, rewritten, stored), or None and why
+    not (:mod:`benchmark.run.cap_carry`)."""
+    if carry is None or not isinstance(raw, dict):
+        return None, None
+    problem = carry_problem(raw, unit, carry(unit))
+    if problem is not None:
+        return None, problem
+    target = move_aside(path, unit.unit_id, old_hash)
+    record = carry_unit(raw, unit, out_dir, path, target)
+    validate_unit_result(record, unit, source=str(path))
+    atomic_write_json(path, record)
+    report.moved.append(target)
+    report.moved_why[unit.unit_id] = "carried to a raised step cap"
+    report.carried.append(unit.unit_id)
+    log.info("%s: made under a cap of %s steps, every fit converged: carried to %s steps (the original in %s)",
+             unit.unit_id, record["carried"]["from_steps"], record["carried"]["to_steps"], target)
+    return record, None
 
 
 def run_units(
@@ -152,6 +185,7 @@ def run_units(
     backend: str | Backend = "local",
     progress: bool | None = None,
     announce: bool = True,
+    carry: Callable[[WorkUnit], "str | None"] | None = None,
 ) -> RunReport:
     """Run ``units`` with ``execute``, storing each result as ``<out_dir>/units/<unit_id>.json``.
 
@@ -161,6 +195,10 @@ def run_units(
     backend: a name in :data:`BACKENDS`, or a backend callable (``benchmark.run.backends.make_backend``).
     progress: tqdm bar; ``None``: only when stdout is a terminal.
     announce: print the resume line (reused / to compute / moved aside) before running.
+    carry: ``carry(unit)``: None where the unit's rules make a converged fit independent of the step
+        cap, else why not (the table protocol's :meth:`~benchmark.protocols.base.Protocol.carry_problem`).
+        Given, a stored unit that differs only by a smaller cap and whose every fit converged is
+        carried over (:mod:`benchmark.run.cap_carry`) instead of rerun. None: never.
 
     A unit that raises is logged with its id and the traceback, nothing is stored for it, the
     others go on; the returned :class:`RunReport` lists it under ``failed`` (callers should exit
@@ -184,14 +222,23 @@ def run_units(
         if not path.exists():
             todo.append(unit)
             continue
-        stored, old_hash, why = _read_stored(path, unit)
+        stored, old_hash, why, raw = _read_stored(path, unit)
         if resume == "only-missing" and stored is not None:
             done[unit.unit_id] = stored
             report.reused.append(unit.unit_id)
             continue
+        not_carried = None
+        if resume == "only-missing" and why is not None and why.startswith(SPEC_DIFFERS):
+            carried, not_carried = _carry(path, unit, raw, old_hash, carry, out_dir, report)
+            if carried is not None:
+                done[unit.unit_id] = carried
+                report.reused.append(unit.unit_id)
+                continue
         target = move_aside(path, unit.unit_id, old_hash)
         report.moved.append(target)
         reason = "resume policy 'never'" if why is None else why
+        if not_carried:
+            reason = f"{reason}; not carried to the new cap: {not_carried}"
         report.moved_why[unit.unit_id] = reason
         log.log(logging.WARNING if why and why.startswith(("checksum", "invalid", "unreadable")) else logging.INFO,
                 "%s: stored result not reused (%s); moved to %s, rerunning", unit.unit_id, reason, target)
@@ -199,7 +246,8 @@ def run_units(
     if announce:
         counts = report.resume_counts()["moved_aside_reasons"]
         why = f" ({', '.join(f'{n} {k}' for k, n in counts.items())})" if counts else ""
-        print(f"work units in {Path(out_dir) / 'units'}: {len(report.reused)} reused, {len(todo)} to compute, "
+        carried = f" (of them {len(report.carried)} carried to a raised step cap)" if report.carried else ""
+        print(f"work units in {Path(out_dir) / 'units'}: {len(report.reused)} reused{carried}, {len(todo)} to compute, "
               f"{len(report.moved)} stored file(s) moved aside to units/stale/{why}", flush=True)
 
     from tqdm import tqdm

@@ -7,6 +7,12 @@ rows is derived again from the per-sequence values every row keeps: each cell's 
 against ``no-prior`` and against the cell's best prior (the best may change). The table's provenance
 keeps its own run and lists, per replacement, the priors and the run they came from.
 
+A new run under a larger step cap (the profile's ``steps``, the cap of the plateau rule) may replace
+rows of a table made under a smaller one, where every fit of every kept row converged before that
+cap and the protocol declares such fits cap-independent (:mod:`benchmark.run.cap_carry`): the kept
+rows are then, value for value, what the larger cap computes. The table takes the new profile, and
+its provenance records the raise.
+
 Used by the quick regression (``BENCHMARK_REGENERATE_PRIORS``, tests/test_quick_tables.py) and by
 ``python -m benchmark merge-rows``.
 """
@@ -31,7 +37,10 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
     appended), the paired comparisons and counts derived again. Refuses tables whose rules, profile,
     sequences, seed, grid, metrics, data or body differ, naming the field; ``source`` and
     ``base_source`` name the two tables in that message (their files)."""
+    raise_cap = _cap_raise(base, new, source, base_source)
     for key in SAME:
+        if key == "profile_sizes" and raise_cap:
+            continue
         if base.get(key) != new.get(key):
             raise ValueError(f"{source}: field {key!r} differs from {base_source}'s ({_short(new.get(key))} against "
                              f"{_short(base.get(key))}): its rows measure something else; rerun those priors with "
@@ -39,8 +48,13 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
     replaced = [row["prior"] for row in new["rows"]]
     if len(set(replaced)) != len(replaced):
         raise ValueError(f"{source}: a prior has two rows: {replaced}")
-    out = copy.deepcopy(dict(base))
     kept = [row for row in base["rows"] if row["prior"] not in replaced]
+    if raise_cap:
+        _check_kept_converged(kept, raise_cap, base_source)
+    out = copy.deepcopy(dict(base))
+    if raise_cap:
+        out["profile_sizes"] = copy.deepcopy(new["profile_sizes"])
+        out["profile_description"] = new.get("profile_description", out.get("profile_description"))
     differ = _fingerprints_that_differ(kept, new["rows"], grid_axes(base))
     by_prior = {row["prior"]: i for i, row in enumerate(out["rows"])}
     for row in new["rows"]:
@@ -72,8 +86,48 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
     timings.pop("wall_s", None)  # two runs: no one wall time
     provenance.setdefault("rows_replaced", []).append(
         {"priors": replaced, "observation_fingerprints_differ": differ,
+         **({"step_cap_raised": {"from": raise_cap[0], "to": raise_cap[1], "rows_kept": [r["prior"] for r in kept]}}
+            if raise_cap else {}),
          "provenance": {k: v for k, v in (new.get("provenance") or {}).items() if k != "rows_replaced"}})
     return out
+
+
+def _cap_raise(base: Mapping, new: Mapping, source: str, base_source: str) -> tuple[int, int] | None:
+    """(old cap, new cap) where ``new`` differs from ``base`` in its profile's step cap alone and
+    the cap rose under rules whose converged fits do not depend on it; else None (the sizes must
+    then agree)."""
+    old, now = dict(base.get("profile_sizes") or {}), dict(new.get("profile_sizes") or {})
+    if old == now or old.pop("steps", None) is None or {k: v for k, v in now.items() if k != "steps"} != old:
+        return None
+    a, b = base["profile_sizes"]["steps"], now.get("steps")
+    if not isinstance(b, int) or b <= a:
+        return None
+    from benchmark.protocols.registry import make_protocol
+
+    try:
+        problem = make_protocol(base.get("protocol")).carry_problem(base.get("spec") or {})
+    except KeyError as exc:
+        problem = str(exc)
+    if problem:
+        raise ValueError(f"{source}: its step cap rose ({a} -> {b} steps) but {base_source}'s rows cannot stand for "
+                         f"the larger cap: {problem}; rerun every row under the new profile")
+    return a, b
+
+
+def _check_kept_converged(kept: list, cap: tuple[int, int], base_source: str) -> None:
+    """Refuse a cap raise when a kept row has a cell with a fit that did not converge (it would go on)."""
+    open_cells = [f"{row['prior']} {_cell_name(cell)} ({cell['diagnostics'].get('not_converged')} of "
+                  f"{cell['diagnostics'].get('sequences')})"
+                  for row in kept for cell in row["cells"]
+                  if not cell.get("na_reason") and (cell.get("diagnostics") or {}).get("not_converged", 1) != 0]
+    if open_cells:
+        raise ValueError(f"{base_source}: the step cap rose ({cap[0]} -> {cap[1]} steps), but the kept rows have fits "
+                         f"that did not converge within {cap[0]} steps, which the larger cap would carry on: "
+                         f"{', '.join(open_cells[:6])}; rerun those priors under the new profile too")
+
+
+def _cell_name(cell: Mapping) -> str:
+    return ", ".join(f"{k}={cell[k]}" for k in ("points", "fps", "sweep") if k in cell) or "cell"
 
 
 def _fingerprints_that_differ(kept: list, new_rows: list, grid_keys) -> list[dict]:

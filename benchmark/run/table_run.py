@@ -147,7 +147,8 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     source = protocol.make_source(spec, body, motions, seed)
     execute = TableExecutor(protocol, spec, profile, adapters, body, source, device)
 
-    report = run_units(units, execute, out_dir, resume=resume, backend=run_backend)
+    report = run_units(units, execute, out_dir, resume=resume, backend=run_backend,
+                       carry=lambda unit: protocol.carry_problem(spec))
     results, failures = report
     meta = {"units": units, "profile": profile, "seed": seed, "device": str(device), "priors": prior_info,
             "sequences": ids, "data": data or "synthetic:test", "body": body.name, "resume": report.resume_counts()}
