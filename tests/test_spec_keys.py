@@ -62,3 +62,18 @@ def test_a_plugin_table_names_its_own_file():
 
     with pytest.raises(ValueError, match=r"^/somewhere/t\.yaml: objective\.lrr .*did you mean objective\.lr\?"):
         check_spec_keys({"name": "t", "_source": "/somewhere/t.yaml", "data": {}, "objective": {"lrr": 1}}, Strict())
+
+
+@pytest.mark.parametrize("name", TABLES)
+def test_the_protocol_document_states_each_table_s_current_version(name):
+    """docs/protocol.md, the project's contract, names each table's version twice (the index and
+    its section); both follow the spec's ``protocol_version``."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "protocol.md").read_text(encoding="utf-8")
+    version = load_table_spec(name)["protocol_version"]
+    index = re.search(rf"^\| `{name}` \|.*\| \*\*(\d+)\*\* \|$", text, re.M)
+    section = re.search(rf"Spec: `benchmark/tables/{name}\.yaml`.*?Current version: \*\*(\d+)\*\*", text, re.S)
+    assert index and int(index.group(1)) == version, f"docs/protocol.md: the index gives {name} another version than {version}"
+    assert section and int(section.group(1)) == version, f"docs/protocol.md: {name}'s section gives another version than {version}"
