@@ -16,6 +16,7 @@ from benchmark.protocols.step_rules import PlateauRule, optimise_to_plateau
 from benchmark.run.runner import run_units
 from benchmark.run.table_derive import derive_table
 from benchmark.run.table_merge import replace_rows
+from benchmark.run.writers import format_markdown
 from fake_units import FakeExecutor, meta, plan, profile, table_spec
 from test_plateau_rule import _problem
 
@@ -135,6 +136,7 @@ def test_a_table_takes_a_row_run_under_a_raised_cap_when_its_kept_rows_converged
     assert merged["provenance"]["rows_replaced"][-1]["step_cap_raised"] == {"from": 400, "to": 800,
                                                                              "rows_kept": ["no-prior"]}
     assert all(c["diagnostics"]["not_converged"] == 0 for r in merged["rows"] for c in r["cells"])
+    assert "the step cap raised from 400 to 800" in format_markdown(merged)
 
     np_open = [u.unit_id for u in old if u.prior == "no-prior"][:1]
     stuck = _table(old, [_Converging(open_units=np_open)(u) for u in old], 400, priors)

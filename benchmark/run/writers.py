@@ -206,7 +206,9 @@ def _header_facts(table: Mapping) -> list[str]:
                      + (f" (git {r[:10]}" + (" (uncommitted changes)" if (p.get("git") or {}).get("dirty") else "") + ")" if r else "")
                      + (f" on {p['cpu']}" if p.get("cpu") else "") + (f", {p['timestamp']}" if p.get("timestamp") else "")
                      + (f"; its observation fingerprints differ in {len(replaced['observation_fingerprints_differ'])} cell(s) "
-                        "(another build of the body's cache)" if replaced.get("observation_fingerprints_differ") else ""))
+                        "(another build of the body's cache)" if replaced.get("observation_fingerprints_differ") else "")
+                     + (f"; the step cap raised from {cap['from']} to {cap['to']}: the other rows' fits all converged "
+                        "before the smaller cap, so they are the same under the larger" if (cap := replaced.get("step_cap_raised")) else ""))
     seqs = sorted({c["sequences"] for r in table["rows"] for c in r["cells"] if "sequences" in c})
     frames = sorted({c["frames"] for r in table["rows"] for c in r["cells"] if "frames" in c})
     if seqs:
