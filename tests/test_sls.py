@@ -122,8 +122,10 @@ def test_observed_anchor_sets():
     with pytest.raises(ValueError, match="divide"):
         sls_data.observed_anchors(100, 7)
     spec = load_table_spec("sls")
-    assert [c["sweep"] for c in grid_cells(spec)] == ["p0", "p50", "p100", "p1000", "p10000", "f5", "f20", "f100"]
-    assert spec["paper"]["columns"] == spec["grid"]["sweep"]
+    assert [c["sweep"] for c in grid_cells(spec)] == ["p0", "p50", "p100", "p1000", "p10000", "f5", "f20"]
+    # f100 is p10000's observation: fitted once, shown in both columns (benchmark.run.same_cells)
+    assert spec["same_cells"] == [{"cell": {"sweep": "f100"}, "as": {"sweep": "p10000"}, "why": spec["same_cells"][0]["why"]}]
+    assert spec["paper"]["columns"] == [*spec["grid"]["sweep"], "f100"]
     assert sls_data.sweep_rule(spec, "p0") == (0, 100) and sls_data.sweep_rule(spec, "f5") == (None, 5)
 
 

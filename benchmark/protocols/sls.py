@@ -112,7 +112,7 @@ import torch
 from benchmark.core.fit_diagnostics import sequence_diagnostics
 from benchmark.protocols.completion_unit import evaluate, loss_vertex_count, plateau_rule
 from benchmark.protocols.sls_cycles import align_first_anchor, cut_cycles
-from benchmark.protocols.sls_data import Observation, SlsData, SlsUnitData, observe
+from benchmark.protocols.sls_data import Observation, SlsData, SlsUnitData, check_same_cells, observe
 from benchmark.protocols.sls_fit import decode_anchors, fit_sls, uses_anchor_decoder
 from benchmark.protocols.step_rules import cap_independent_problem
 from benchmark.data.unit_arrays import ground_truth_pose
@@ -167,6 +167,7 @@ def source_motions(data: str | None, body) -> dict:
 
 # ============================================================================ the protocol module
 def make_source(spec: dict, body, motions_by_id: dict, seed: int) -> SlsData:
+    check_same_cells(spec)  # a column shown as another's must be its observation
     return SlsData(spec, body, motions_by_id, seed)
 
 

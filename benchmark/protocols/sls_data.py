@@ -93,6 +93,20 @@ def sweep_rule(spec: dict, code: str) -> tuple[int | None, int]:
     return (None if pts == "all" else int(pts)), int(rule.get("frames", spec["data"]["anchors"]))
 
 
+def check_same_cells(spec: dict) -> None:
+    """Refuse a ``same_cells`` entry (``benchmark.run.same_cells``: a column fitted once, shown as
+    another) whose column is not its source's observation: the same observed anchors and as many
+    points per scan (``all`` is ``data.points_per_scan``)."""
+    per_scan = int(spec["data"]["points_per_scan"])
+    for e in spec.get("same_cells") or []:
+        codes = [(e.get("cell") or {}).get("sweep"), (e.get("as") or {}).get("sweep")]
+        seen = [((per_scan if p is None else min(p, per_scan)), f) for p, f in (sweep_rule(spec, c) for c in codes)]
+        if seen[0] != seen[1]:
+            raise ValueError(f"{spec.get('_source', 'benchmark/tables/sls.yaml')}: same_cells: {codes[0]!r} observes "
+                             f"{seen[0][0]} points at {seen[0][1]} anchors, {codes[1]!r} {seen[1][0]} at {seen[1][1]}: "
+                             "not the same observation; list it in grid.sweep instead")
+
+
 def observed_anchors(anchors: int, frames: int) -> torch.Tensor:
     """0-based I_f: anchors k * A / f (1-based), k = 1..f (I_5 of 100 = 20, 40, ..., 100)."""
     if frames < 1 or anchors % frames:

@@ -18,6 +18,7 @@ import numpy as np
 from benchmark.core.fit_diagnostics import cell_diagnostics
 from benchmark.core.intervals import LEVEL, RESAMPLES, bootstrap_ci, excludes_zero, paired_bootstrap, weighted_mean
 from benchmark.core.json_io import canonical_json
+from benchmark.run.same_cells import copy_same_cells, same_cells
 from benchmark.core.work_units import (TABLE_FORMAT_VERSION, WorkUnit, spec_field, grid_cells, metric_specs,
                                        profile_sizes, si_metric, spec_source, stable_seed, table_rules,
                                        validate_unit_result)
@@ -178,6 +179,9 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
     }
     if table_spec.get("paper"):
         table["paper"] = copy.deepcopy(table_spec["paper"])
+    copy_same_cells(table, same_cells(table_spec))  # columns fitted once under another name
+    table["counts"]["cells"] = sum(len(row["cells"]) for row in rows)
+    table["counts"]["cells_na"] = sum(1 for row in rows for c in row["cells"] if c.get("na_reason"))
     return table
 
 

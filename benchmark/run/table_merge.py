@@ -25,6 +25,7 @@ import re
 from typing import Mapping
 
 from benchmark.core.work_units import grid_axes, grid_cells
+from benchmark.run.same_cells import copy_same_cells
 from benchmark.run.table_derive import add_paired
 
 # what must agree for two tables' rows to be measurements of one protocol on one test set
@@ -70,6 +71,7 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
         for cell in row["cells"]:
             cell.pop("paired", None)
     add_paired(out["rows"], cells, out["metrics"], out["seed"])
+    copy_same_cells(out, out.get("same_cells") or [])  # a copied column stays its source's, comparisons included
 
     all_cells = [c for row in out["rows"] for c in row["cells"]]
     out["counts"] = {

@@ -120,6 +120,13 @@ def has_intervals(table: Mapping) -> bool:
     return any(f"{n}_ci95" in c for r in table["rows"] for c in r["cells"] for n in names)
 
 
+def same_label(same: Mapping) -> str:
+    """``f100`` fitted once as ``p10000``: a ``same_cells`` entry in words (:mod:`benchmark.run.same_cells`)."""
+    (_, value), = same["cell"].items()
+    (_, source), = same["as"].items()
+    return f"`{value}` is column `{source}`, fitted once and shown twice"
+
+
 def interval_note(table: Mapping) -> str:
     """The sentence under each Markdown table: what the brackets and the mark mean."""
     level = (table.get("bootstrap") or {}).get("level", 0.95)
@@ -209,6 +216,8 @@ def _header_facts(table: Mapping) -> list[str]:
                         "(another build of the body's cache)" if replaced.get("observation_fingerprints_differ") else "")
                      + (f"; the step cap raised from {cap['from']} to {cap['to']}: the other rows' fits all converged "
                         "before the smaller cap, so they are the same under the larger" if (cap := replaced.get("step_cap_raised")) else ""))
+    for same in table.get("same_cells") or []:  # benchmark.run.same_cells
+        facts.append(f"column {same_label(same)}: {same['why'] or 'the same observation'}")
     seqs = sorted({c["sequences"] for r in table["rows"] for c in r["cells"] if "sequences" in c})
     frames = sorted({c["frames"] for r in table["rows"] for c in r["cells"] if "frames" in c})
     if seqs:
@@ -460,6 +469,8 @@ def format_latex(table: Mapping) -> str:
         out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize {note.strip()}}} \\")
     for reason, k in marks.items():
         out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize $^{{{k}}}$ {tex_escape(reason)}}} \\")
+    for same in table.get("same_cells") or []:
+        out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize {tex_escape(same_label(same).replace('`', ''))}}} \\")
     out.append(r"\end{tabular}")
     return "\n".join(out) + "\n"
 
