@@ -91,7 +91,7 @@ def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, f
     for row in table["rows"]:
         for i, c in enumerate(row["cells"]):
             cell = {k: c[k] for k in grid_keys}
-            units = run.units_of(name, row["prior"], cell)
+            units = run.units_of(name, row["prior"], {**cell, **(c.get("same_as") or {})})  # a copied column: its source's
             cr = CellReport(table=name, prior=row["prior"], cell=cell, units=units,
                             anchor=f"seq-{stem}-{safe_name(row['prior'])}-{i}")
             cr.seq_rows = sequence_rows(units, metric_names)
