@@ -87,3 +87,13 @@ def test_p10000_keeps_every_point_of_a_scan_in_its_order():
     pcs = PointCloudSequence(points=pts, lengths=torch.full((1, 3), 10000), timestamps=torch.arange(3.0)[None])
     kept = degrade(pcs, 10000, None, seed=7)
     assert torch.equal(kept.points, pts) and fingerprint(kept) == fingerprint(pcs)
+
+
+def test_a_bad_same_cells_entry_fails_before_any_unit_runs(tmp_path):
+    from benchmark.run.table_run import run_table
+
+    spec = _spec(same_cells=[{"cell": {"points": 1000}, "as": {"points": 100}}])
+    with pytest.raises(ValueError, match="also in grid.points"):
+        run_table(spec, profile(), ["hmvae"], None, "cpu", 0, tmp_path)
+    assert not (tmp_path / "units").exists()
+

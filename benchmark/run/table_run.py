@@ -119,7 +119,10 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     from benchmark.core.work_units import plan_units, select_sequences
     from benchmark.run.writers import format_markdown, write_table
 
+    from benchmark.run.same_cells import same_cells
+
     protocol = table_protocol(spec)
+    same_cells(spec)  # a malformed same_cells entry fails here, not when the table is derived after every unit
     weights = weights or {}
     check_weights_option(weights, priors)
     # build the backend first: a bad option fails before any data is loaded
