@@ -96,6 +96,27 @@ def test_converged_units_are_carried_to_a_raised_cap_and_the_others_rerun(tmp_pa
     assert len(again.reused) == len(new) and not again.carried and not again.ran
 
 
+def test_a_carry_that_fails_midway_reruns_the_unit_and_keeps_the_original(tmp_path, monkeypatch):
+    import benchmark.run.runner as runner
+
+    spec = table_spec()
+    old = plan(spec, profile(batch_sequences=2, steps=400))[:1]
+    run_units(old, _Converging(), tmp_path, announce=False)
+    before = json.loads(unit_path(tmp_path, old[0].unit_id).read_text())
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(runner, "carry_unit", broken)
+    new = plan(spec, profile(batch_sequences=2, steps=800))[:1]
+    execute = _Converging()
+    report = run_units(new, execute, tmp_path, announce=False, carry=_carry(spec))
+    assert execute.calls == [new[0].unit_id] and not report.carried and report.ok
+    assert "carrying it to the new cap failed (disk full)" in report.moved_why[new[0].unit_id]
+    (stale,) = (tmp_path / "units" / "stale").glob("*.json")
+    assert json.loads(stale.read_text()) == before
+
+
 @pytest.mark.parametrize("case", ["cap fell", "no carry", "several starts", "other sizes"])
 def test_units_are_rerun_where_the_cap_did_not_rise_or_the_rules_forbid_it(tmp_path, case):
     spec = table_spec()

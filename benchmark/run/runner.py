@@ -132,6 +132,7 @@ def move_aside(path: Path, unit_id: str, old_hash: str | None) -> Path:
 
 
 SPEC_DIFFERS = "spec hash differs"
+MOVED = "moved"  # _carry's answer when it moved the stored file aside and then failed
 
 
 def _read_stored(path: Path, unit: WorkUnit) -> tuple[dict | None, str | None, str | None, dict | None]:
@@ -166,10 +167,16 @@ def _carry(path: Path, unit: WorkUnit, raw: dict | None, old_hash: str | None, c
     if problem is not None:
         return None, problem
     target = move_aside(path, unit.unit_id, old_hash)
-    record = carry_unit(raw, unit, out_dir, path, target)
-    validate_unit_result(record, unit, source=str(path))
-    atomic_write_json(path, record)
     report.moved.append(target)
+    try:
+        record = carry_unit(raw, unit, out_dir, path, target)
+        validate_unit_result(record, unit, source=str(path))
+        atomic_write_json(path, record)
+    except (ValueError, OSError) as exc:  # the original is safe in units/stale/: the unit is computed again
+        report.moved_why[unit.unit_id] = f"spec hash differs; carrying it to the new cap failed ({exc})"
+        log.warning("%s: carrying it to the new cap failed (%s); the original is in %s, rerunning", unit.unit_id, exc,
+                    target)
+        return None, MOVED
     report.moved_why[unit.unit_id] = "carried to a raised step cap"
     report.carried.append(unit.unit_id)
     log.info("%s: made under a cap of %s steps, every fit converged: carried to %s steps (the original in %s)",
@@ -233,6 +240,9 @@ def run_units(
             if carried is not None:
                 done[unit.unit_id] = carried
                 report.reused.append(unit.unit_id)
+                continue
+            if not_carried == MOVED:
+                todo.append(unit)
                 continue
         target = move_aside(path, unit.unit_id, old_hash)
         report.moved.append(target)
