@@ -224,6 +224,28 @@ def test_report_of_a_run_without_stored_fits(run_dir, tmp_path):
     assert text.count("animation unavailable") == 2 and "no stored fit" in text
 
 
+def test_a_column_shown_as_another_s_is_animated_once(run_dir, tmp_path):
+    """A same_cells column (benchmark.run.same_cells) reads its source's units: no second rendering
+    of the same files (two workers could write one file at once), and the page says where they are."""
+    import copy as copy_
+
+    from benchmark.report import build_report
+
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    path = run / "table1.json"
+    table = json.loads(path.read_text())
+    table["grid"]["fps"].append(20)
+    for row in table["rows"]:
+        cell = copy_.deepcopy(next(c for c in row["cells"] if c["fps"] == 10))
+        row["cells"].append({**cell, "fps": 20, "same_as": {"fps": 10}, "units": 0})
+    path.write_text(json.dumps(table))
+    index = build_report(run, tmp_path / "r", sequences=1, workers=2)
+    refs = _check_page(index)
+    assert len([s for s in refs.srcs if "anim__" in s]) == 2  # the two computed cells', not three
+    assert "the fits of column 10 fps: animated there" in index.read_text(encoding="utf-8")
+
+
 def test_a_failing_animation_is_said_on_the_page(run_dir, tmp_path):
     from benchmark.report import build_report
 

@@ -15,7 +15,7 @@ import shutil
 import time
 from pathlib import Path
 
-from benchmark.report.cells import CellReport, diagnose, run_animation_jobs, safe_name
+from benchmark.report.cells import CellReport, cell_text, diagnose, run_animation_jobs, safe_name
 from benchmark.report.run_folder import RunFolder, load_run, sequence_rows
 from benchmark.report.sections import (about_html, animation_section, breakdown_section, diagnostics_table, esc,
                                        figure_html, metric_table)
@@ -95,7 +95,11 @@ def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, f
             cr = CellReport(table=name, prior=row["prior"], cell=cell, units=units,
                             anchor=f"seq-{stem}-{safe_name(row['prior'])}-{i}")
             cr.seq_rows = sequence_rows(units, metric_names)
-            diagnose(run, cr, img_dir, sequences if not c.get("na_reason") else 0, fmt, body_spec, animation_fps, jobs)
+            same = c.get("same_as")  # a copied column: its source's fits, animated once, under the source
+            diagnose(run, cr, img_dir, sequences if not (c.get("na_reason") or same) else 0, fmt, body_spec,
+                     animation_fps, jobs)
+            if same and units:
+                cr.no_animation = f"the fits of column {cell_text(same)}: animated there"
             reports[(row["prior"], i)] = cr
     return lambda: _table_html(table, reports, img_dir, plots, stem, priors, colours, metric_names, head, cells,
                                grid_keys)
