@@ -1,7 +1,7 @@
 """The project's own protocols, as :class:`~benchmark.protocols.base.Protocol` classes.
 
 Each is a thin wrapper of its protocol module's functions (``make_source``, ``run_unit`` and, where
-the module has them, ``load_motions``, ``na_reason``, ``unit_cost``, ``carry_problem``); the module docstrings give the
+the module has them, ``load_motions``, ``na_reason``, ``unit_cost``); the module docstrings give the
 rules in full. They register in the entry-point group ``benchmark.protocols`` (``pyproject.toml``),
 exactly as another package's protocol would; importing this module imports none of the protocol
 modules (each is imported on a protocol's first use).
@@ -35,10 +35,6 @@ class ModuleProtocol(Protocol):
     def run_unit(self, unit, spec: dict, profile: dict, adapter, body, source, device) -> dict:
         return self.functions().run_unit(unit, spec, profile, adapter, body, source, device)
 
-    def carry_problem(self, spec: dict) -> str | None:
-        module = self.functions()
-        return module.carry_problem(spec) if hasattr(module, "carry_problem") else super().carry_problem(spec)
-
     def unit_cost(self, unit, spec: dict, profile: dict) -> float:
         module = self.functions()
         if hasattr(module, "unit_cost"):
@@ -46,7 +42,18 @@ class ModuleProtocol(Protocol):
         return super().unit_cost(unit, spec, profile)
 
 
-class CompletionProtocol(ModuleProtocol):
+class PlateauRuleProtocol(ModuleProtocol):
+    """A protocol whose fits run the plateau step rule (table1, sls): a unit whose every fit
+    converged is the same under any larger step cap, where its rules say so
+    (:func:`benchmark.protocols.step_rules.cap_independent_problem`)."""
+
+    def carry_problem(self, spec: dict) -> str | None:
+        from benchmark.protocols.step_rules import cap_independent_problem
+
+        return cap_independent_problem(spec["objective"])
+
+
+class CompletionProtocol(PlateauRuleProtocol):
     """Completion of sparse point-cloud sequences (table1; benchmark/protocols/completion_unit.py)."""
 
     name = "completion"
@@ -64,7 +71,7 @@ class CompletionProtocol(ModuleProtocol):
         return completion_unit
 
 
-class SlsProtocol(ModuleProtocol):
+class SlsProtocol(PlateauRuleProtocol):
     """Completion of one-cycle sequences with landmarks (sls; benchmark/protocols/sls.py)."""
 
     name = "sls"

@@ -402,13 +402,6 @@ def optimiser_rule(spec: dict) -> str:
 STEP_RULES = ("cosine", "plateau")  # objective.step_rule: versions 1-5 cosine over the profile's steps; v6 plateau
 
 
-def carry_problem(spec: dict) -> str | None:
-    """Whether a converged unit carries over to a larger step cap (:mod:`benchmark.run.cap_carry`)."""
-    from benchmark.protocols.step_rules import cap_independent_problem
-
-    return cap_independent_problem(spec["objective"])
-
-
 def plateau_rule(spec: dict):
     """The step rule of ``objective.step_rule`` (protocol v6: ``plateau``, with ``objective.plateau``'s
     sizes; :class:`benchmark.protocols.step_rules.PlateauRule`), or None for versions 1-5's cosine

@@ -114,7 +114,6 @@ from benchmark.protocols.completion_unit import evaluate, loss_vertex_count, pla
 from benchmark.protocols.sls_cycles import align_first_anchor, cut_cycles
 from benchmark.protocols.sls_data import Observation, SlsData, SlsUnitData, check_same_cells, observe
 from benchmark.protocols.sls_fit import decode_anchors, fit_sls, uses_anchor_decoder
-from benchmark.protocols.step_rules import cap_independent_problem
 from benchmark.data.unit_arrays import ground_truth_pose
 
 log = logging.getLogger(__name__)
@@ -169,11 +168,6 @@ def source_motions(data: str | None, body) -> dict:
 def make_source(spec: dict, body, motions_by_id: dict, seed: int) -> SlsData:
     check_same_cells(spec)  # a column shown as another's must be its observation
     return SlsData(spec, body, motions_by_id, seed)
-
-
-def carry_problem(spec: dict) -> str | None:
-    """Whether a converged unit carries over to a larger step cap (:mod:`benchmark.run.cap_carry`): as table1's."""
-    return cap_independent_problem(spec["objective"])
 
 
 def na_reason(spec: dict, adapter) -> str | None:

@@ -91,11 +91,11 @@ def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, f
     for row in table["rows"]:
         for i, c in enumerate(row["cells"]):
             cell = {k: c[k] for k in grid_keys}
-            units = run.units_of(name, row["prior"], {**cell, **(c.get("same_as") or {})})  # a copied column: its source's
+            same = c.get("same_as")  # a copied column: its source's units and fits, animated once, under the source
+            units = run.units_of(name, row["prior"], {**cell, **(same or {})})
             cr = CellReport(table=name, prior=row["prior"], cell=cell, units=units,
                             anchor=f"seq-{stem}-{safe_name(row['prior'])}-{i}")
             cr.seq_rows = sequence_rows(units, metric_names)
-            same = c.get("same_as")  # a copied column: its source's fits, animated once, under the source
             diagnose(run, cr, img_dir, sequences if not (c.get("na_reason") or same) else 0, fmt, body_spec,
                      animation_fps, jobs)
             if same and units:

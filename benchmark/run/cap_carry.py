@@ -79,12 +79,12 @@ def carry_problem(stored: Mapping, unit: WorkUnit, rules_problem: str | None) ->
     return None
 
 
-def carry_unit(stored: Mapping, unit: WorkUnit, out_dir: str | os.PathLike, json_path: Path, stale_json: Path) -> dict:
+def carry_unit(stored: Mapping, unit: WorkUnit, out_dir: str | os.PathLike, stale_json: Path) -> dict:
     """``stored`` rewritten as ``unit``'s result (spec, hash, a ``carried`` record, its checksum).
 
     The caller has moved the stored JSON to ``stale_json``; the unit's ``.npz``, if any, is copied
-    beside it and rewritten with the new hash (its arrays are the same). Returns the record to
-    store at ``json_path``, which the caller writes."""
+    beside it and rewritten with the new hash (its arrays are the same). Returns the record the caller
+    stores as the unit's JSON."""
     old_hash = stored.get("spec_hash")
     record = {k: v for k, v in stored.items() if k != "checksum"}
     record["spec"] = unit.spec

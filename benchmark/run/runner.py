@@ -169,7 +169,7 @@ def _carry(path: Path, unit: WorkUnit, raw: dict | None, old_hash: str | None, c
     target = move_aside(path, unit.unit_id, old_hash)
     report.moved.append(target)
     try:
-        record = carry_unit(raw, unit, out_dir, path, target)
+        record = carry_unit(raw, unit, out_dir, target)
         validate_unit_result(record, unit, source=str(path))
         atomic_write_json(path, record)
     except (ValueError, OSError) as exc:  # the original is safe in units/stale/: the unit is computed again

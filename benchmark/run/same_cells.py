@@ -23,8 +23,6 @@ from __future__ import annotations
 import copy
 from typing import Mapping
 
-from benchmark.core.json_io import canonical_json
-
 
 def same_cells(spec: Mapping) -> list[dict]:
     """The spec's ``same_cells``, checked: ``[{"cell": {...}, "as": {...}, "why": str}]``."""
@@ -54,15 +52,15 @@ def copy_same_cells(table: dict, entries: list[dict]) -> None:
     kept = []
     for e in entries:
         (axis, value), = e["cell"].items()
-        target = canonical_json(e["as"])
-        if not any(canonical_json({axis: c.get(axis)}) == target for row in table["rows"] for c in row["cells"]):
+        target = e["as"][axis]
+        if not any(c.get(axis) == target for row in table["rows"] for c in row["cells"]):
             continue
         kept.append(e)
         if value not in table["grid"][axis]:
             table["grid"][axis].append(value)
         for row in table["rows"]:
             row["cells"] = [c for c in row["cells"] if c.get(axis) != value]
-            source = next((c for c in row["cells"] if canonical_json({axis: c.get(axis)}) == target), None)
+            source = next((c for c in row["cells"] if c.get(axis) == target), None)
             if source is None:
                 continue
             cell = copy.deepcopy(source)

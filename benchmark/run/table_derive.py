@@ -142,7 +142,6 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
     if meta.get("resume") is not None:
         provenance["resume"] = dict(meta["resume"])
 
-    all_cells = [c for row in rows for c in row["cells"]]
     table = {
         "format_version": TABLE_FORMAT_VERSION,
         "table": table_spec["name"],
@@ -172,16 +171,14 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
         "counts": {
             "units_planned": len(units),
             "units_done": len(done_results),
-            "cells": len(all_cells),
-            "cells_na": sum(1 for c in all_cells if c.get("na_reason")),
         },
         "rows": rows,
     }
     if table_spec.get("paper"):
         table["paper"] = copy.deepcopy(table_spec["paper"])
     copy_same_cells(table, same_cells(table_spec))  # columns fitted once under another name
-    table["counts"]["cells"] = sum(len(row["cells"]) for row in rows)
-    table["counts"]["cells_na"] = sum(1 for row in rows for c in row["cells"] if c.get("na_reason"))
+    all_cells = [c for row in rows for c in row["cells"]]
+    table["counts"].update(cells=len(all_cells), cells_na=sum(1 for c in all_cells if c.get("na_reason")))
     return table
 
 

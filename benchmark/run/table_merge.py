@@ -51,7 +51,7 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
         raise ValueError(f"{source}: a prior has two rows: {replaced}")
     kept = [row for row in base["rows"] if row["prior"] not in replaced]
     if raise_cap:
-        _check_kept_converged(kept, raise_cap, base_source)
+        _check_kept_converged(kept, raise_cap, grid_axes(base), base_source)
     out = copy.deepcopy(dict(base))
     if raise_cap:
         out["profile_sizes"] = copy.deepcopy(new["profile_sizes"])
@@ -116,9 +116,9 @@ def _cap_raise(base: Mapping, new: Mapping, source: str, base_source: str) -> tu
     return a, b
 
 
-def _check_kept_converged(kept: list, cap: tuple[int, int], base_source: str) -> None:
+def _check_kept_converged(kept: list, cap: tuple[int, int], axes, base_source: str) -> None:
     """Refuse a cap raise when a kept row has a cell with a fit that did not converge (it would go on)."""
-    open_cells = [f"{row['prior']} {_cell_name(cell)} ({cell['diagnostics'].get('not_converged')} of "
+    open_cells = [f"{row['prior']} {', '.join(f'{k}={cell[k]}' for k in axes)} ({cell['diagnostics'].get('not_converged')} of "
                   f"{cell['diagnostics'].get('sequences')})"
                   for row in kept for cell in row["cells"]
                   if not cell.get("na_reason") and (cell.get("diagnostics") or {}).get("not_converged", 1) != 0]
@@ -126,10 +126,6 @@ def _check_kept_converged(kept: list, cap: tuple[int, int], base_source: str) ->
         raise ValueError(f"{base_source}: the step cap rose ({cap[0]} -> {cap[1]} steps), but the kept rows have fits "
                          f"that did not converge within {cap[0]} steps, which the larger cap would carry on: "
                          f"{', '.join(open_cells[:6])}; rerun those priors under the new profile too")
-
-
-def _cell_name(cell: Mapping) -> str:
-    return ", ".join(f"{k}={cell[k]}" for k in ("points", "fps", "sweep") if k in cell) or "cell"
 
 
 def _fingerprints_that_differ(kept: list, new_rows: list, grid_keys) -> list[dict]:
