@@ -356,3 +356,25 @@ def test_body_skeleton_does_not_depend_on_the_thread_count(anny_body):
         torch.set_num_threads(threads)
     assert digests[0] == digests[1]
     assert torch.get_num_threads() == threads
+
+
+def test_build_split_never_deletes_files_it_did_not_write(tmp_path, monkeypatch):
+    subjects = sample_subjects(2, 5, "tiny")
+    spec = SplitSpec(
+        "tiny", 5, 30.0, lambda seed: subjects,
+        lambda subj, seed: splits_mod.plan_random_split(subj, seed, per_subject=1, duration=(2.0, 2.5)),
+        "two short sequences",
+    )
+    monkeypatch.setitem(splits_mod.SPLITS, "tiny", spec)
+    folder = tmp_path / "tiny"
+    folder.mkdir()
+    mine = folder / "my_capture.npz"
+    mine.write_bytes(b"a user's own file")
+    stale = folder / "tiny_0007.npz"  # what an interrupted build of the split leaves: its own name
+    stale.write_bytes(b"partial")
+    with pytest.raises(FileExistsError, match=r"my_capture\.npz.*MOTION_BENCHMARK_CACHE"):
+        build_split("tiny", body=CANON, root=tmp_path)
+    assert mine.read_bytes() == b"a user's own file" and stale.exists()
+    mine.unlink()
+    build_split("tiny", body=CANON, root=tmp_path, rebuild=True)  # its own files only: rebuilt
+    assert not stale.exists() and sorted(p.name for p in folder.glob("*.npz")) == ["tiny_0000.npz", "tiny_0001.npz"]

@@ -22,6 +22,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import tempfile
 import time
 from contextlib import contextmanager
@@ -167,6 +168,22 @@ def _manifest_problem(folder: Path, expected: dict) -> str | None:
     return None
 
 
+def _foreign_files(folder: Path, name: str) -> list[str]:
+    """The ``.npz`` files in a split's cache folder that a build of split ``name`` did not write:
+    neither listed in the folder's manifest nor named as the build names its files
+    (``NAME_0000.npz``; an interrupted build leaves those without a manifest). A rebuild replaces
+    only its own files, so it refuses a folder holding others."""
+    if not folder.is_dir():
+        return []
+    listed: set[str] = set()
+    try:
+        listed = {str(e["file"]) for e in json.loads((folder / "manifest.json").read_text())["files"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    own = re.compile(rf"{re.escape(name)}_\d{{4}}\.npz")
+    return sorted(p.name for p in folder.glob("*.npz") if p.name not in listed and not own.fullmatch(p.name))
+
+
 def build_split(
     name: str,
     body=None,
@@ -202,14 +219,23 @@ def build_split(
     if problem is None:
         manifest = json.loads((folder / "manifest.json").read_text())
         return [Motion.load(folder / e["file"]) for e in manifest["files"]]
+    foreign = _foreign_files(folder, name)
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise FileExistsError(
+            f"synthetic split {name!r}: its cache folder {folder} holds .npz files the split did not write "
+            f"({shown}); building it there would replace them. Move them elsewhere, or point "
+            "MOTION_BENCHMARK_CACHE at a folder of their own for the splits")
     log.info("building synthetic split %r in %s (%s)", name, folder, problem)
     t0 = time.perf_counter()
     motions = generate_split(name, source, seed)
     elapsed = time.perf_counter() - t0
     folder.mkdir(parents=True, exist_ok=True)
+    keep = set(_foreign_files(folder, name))  # empty (checked above) unless a file appeared since
     (folder / "manifest.json").unlink(missing_ok=True)  # invalid until the new one is written
     for old in folder.glob("*.npz"):
-        old.unlink()
+        if old.name not in keep:
+            old.unlink()
     entries = []
     for i, m in enumerate(motions):
         fname = f"{name}_{i:04d}.npz"
