@@ -144,3 +144,20 @@ def test_shape_file_and_missing_keys(tmp_path):
     np.savez(p, poses=np.zeros((5, 100)), trans=np.zeros((5, 3)), mocap_framerate=np.array(120.0))
     with pytest.raises(ValueError, match=r"key 'poses' has shape \(5, 100\)"):
         load_amass(p)
+
+
+def test_a_data_folder_skips_amass_shape_files(tmp_path):
+    """An AMASS subject folder holds shape.npz (betas, gender) beside its sequences: --data reads
+    the sequences and leaves the shape file out; a folder of shape files only is refused."""
+    from benchmark.data.table_data import load_motions
+
+    sub = tmp_path / "CMU" / "01"
+    sub.mkdir(parents=True)
+    write_amass(sub / "01_01_poses.npz")
+    np.savez(sub / "shape.npz", betas=np.zeros(16), gender="male")
+    np.savez(sub / "01_02_shape.npz", betas=np.zeros(16), gender="male")
+    motions = load_motions(str(tmp_path / "CMU"), 0.1)
+    assert list(motions) == ["01/01_01_poses.npz"]
+    (sub / "01_01_poses.npz").unlink()
+    with pytest.raises(FileNotFoundError, match=r"only AMASS shape files .*shape\.npz"):
+        load_motions(str(tmp_path / "CMU"), 0.1)

@@ -13,6 +13,12 @@ from benchmark.core.safe_loading import npz_read_error
 log = logging.getLogger(__name__)
 
 
+def _is_amass_shape_file(path: Path, keys: set) -> bool:
+    """An AMASS subject's shape file (``shape.npz``, ``*_shape.npz``: betas and gender, no poses)."""
+    has_pose = "poses" in keys or {"root_orient", "pose_body"} <= keys
+    return not has_pose and (path.name == "shape.npz" or path.name.endswith("_shape.npz") or "betas" in keys)
+
+
 def load_motions(data: str | None, min_duration: float, body=None) -> dict:
     """Test motions by id: the synthetic test split by default, or a folder of motion files (each
     checked by its loader: :mod:`benchmark.core.plausibility`)."""
@@ -33,7 +39,7 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
             raise FileNotFoundError(f"--data {data}: no .npz motion files under {root}")
         import numpy as np
 
-        by_id = {}
+        by_id, shape_files = {}, []
         for f in files:
             try:
                 with np.load(f, allow_pickle=False) as npz:
@@ -41,6 +47,9 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
             except Exception as exc:  # not a zip, a pickle, truncated...
                 raise ValueError(f"--data {data}: {f} is not a readable .npz file ({npz_read_error(f, exc)}); "
                                  "remove it from the folder or re-export it (python -m benchmark data convert)") from None
+            if root.is_dir() and _is_amass_shape_file(f, keys):
+                shape_files.append(f)  # an AMASS subject's shape.npz / *_shape.npz beside its sequences
+                continue
             try:
                 m = load_amass(f) if "mocap_framerate" in keys or "mocap_frame_rate" in keys else Motion.load(f)
             except KeyError as exc:
@@ -50,6 +59,12 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
                                  "`python -m benchmark data convert FILE --out FILE.npz`") from None
             key = str(f.relative_to(root) if root.is_dir() else f.name)
             by_id[key], files_by_id[key] = m, str(f)
+    if data is not None and shape_files:
+        log.info("--data %s: %d AMASS shape file(s) hold no motion and are not test sequences (e.g. %s)",
+                 data, len(shape_files), shape_files[0])
+        if not by_id:
+            raise FileNotFoundError(f"--data {data}: no motion files under {root}, only AMASS shape files "
+                                    f"(e.g. {shape_files[0]}); give the folder of the *_poses.npz / *_stageii.npz sequences")
     if body is not None:
         by_id = {k: shape_for_body(m, body, files_by_id.get(k)) for k, m in by_id.items()}
     short = [k for k, m in by_id.items() if m.duration + 1e-6 < min_duration]
