@@ -66,3 +66,20 @@ def test_cli_weights_name_a_missing_file_before_any_work(tmp_path, capsys):
         assert main(["encoder-check", "--prior", "motion-dvae", *argv]) == 2
         err = capsys.readouterr().err
         assert message in err and "MPJPE" not in err, err
+
+
+def test_a_window_longer_than_every_motion_is_named(anny_body):
+    with pytest.raises(ValueError, match=r"synthetic test split: every motion is shorter than the 1000\.0 s window.*--window"):
+        check_encoders(["vposer-slerp"], anny_body, sequences=1, window_s=1000.0, noise_deg=(0.0,))
+
+
+def test_cli_numbers_are_range_checked(capsys):
+    from benchmark.cli import main
+
+    for argv, message in ((["--seed", "-1"], "argument --seed: -1 is out of range"),
+                          (["--sequences", "0"], "argument --sequences: 0 is out of range"),
+                          (["--window", "nan"], "argument --window"),
+                          (["--noise-deg", "-2"], "argument --noise-deg: -2 is out of range")):
+        with pytest.raises(SystemExit) as exc:
+            main(["encoder-check", "--prior", "vposer-slerp", *argv])
+        assert exc.value.code == 2 and message in capsys.readouterr().err

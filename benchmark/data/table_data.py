@@ -68,11 +68,14 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
     if body is not None:
         by_id = {k: shape_for_body(m, body, files_by_id.get(k)) for k, m in by_id.items()}
     short = [k for k, m in by_id.items() if m.duration + 1e-6 < min_duration]
-    if short and data is not None and len(short) == len(by_id):
+    if short and len(short) == len(by_id):
         longest = max(short, key=lambda k: by_id[k].duration)
-        raise ValueError(f"--data {data}: every motion is shorter than the {min_duration:.1f} s window this table "
-                         f"needs ({len(short)} of {len(by_id)}; the longest, {files_by_id.get(longest, longest)}, "
-                         f"lasts {by_id[longest].duration:.2f} s): give motions of at least {min_duration:.1f} s")
+        where, needs, fix = (f"--data {data}", "this table needs", f"give motions of at least {min_duration:.1f} s") \
+            if data is not None else ("the synthetic test split", "asked for",
+                                      "ask for a shorter window (the command's --window, where it has one)")
+        raise ValueError(f"{where}: every motion is shorter than the {min_duration:.1f} s window {needs} "
+                         f"({len(short)} of {len(by_id)}; the longest, {files_by_id.get(longest, longest)}, "
+                         f"lasts {by_id[longest].duration:.2f} s): {fix}")
     if short:
         log.warning("skipping %d motions shorter than the %.1f s window: %s", len(short), min_duration, short[:5])
     return {k: m for k, m in by_id.items() if k not in short}
