@@ -125,6 +125,13 @@ def load_state_strict(
             raise CheckpointMismatchError(f"{file}: fixed tensor {prefix + k!r} of the {what} differs from the "
                                           f"network's own{f' ({fixed_note})' if fixed_note else ''}")
     mapped = {k: raw[k] for k in expected if k in raw}
+    params = {name for name, _ in model.named_parameters()}
+    nonfinite = [prefix + k for k, t in sorted(mapped.items()) if t.is_floating_point() and bool(
+        (~torch.isfinite(t) if k in params else torch.isnan(t)).any())]  # a buffer may hold an inf mask
+    if nonfinite:
+        raise CheckpointMismatchError(f"{file}: {len(nonfinite)} tensor(s) of the {what} checkpoint hold NaN or inf "
+                                      f"values: {_listed(nonfinite)} (a diverged training?); retrain, or give the "
+                                      "checkpoint of a finished training")
     model.load_state_dict(mapped, strict=False)  # every required key checked above
     return sorted(mapped), (unexpected if ignore_unexpected else [])
 

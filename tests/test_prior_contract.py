@@ -165,6 +165,36 @@ def test_the_strict_loader_names_the_file_and_keys():
                           fixed=["1.running_mean"], fixed_note="rebuilt")
 
 
+def _nan_floats(obj):
+    if torch.is_tensor(obj):
+        return torch.full_like(obj, float("nan")) if obj.is_floating_point() else obj
+    if isinstance(obj, dict):
+        return {k: _nan_floats(v) for k, v in obj.items()}
+    return obj
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_a_checkpoint_of_nan_weights_is_refused_by_name(package, tmp_path):
+    """A diverged training's checkpoint (NaN weights) is refused when it loads, naming the file, not
+    later inside a fit or the Chamfer loss."""
+    module = importlib.import_module(f"priors.{package}.checkpoint")
+    bad = tmp_path / Path(module.DEFAULT_WEIGHTS).name
+    torch.save(_nan_floats(torch.load(module.DEFAULT_WEIGHTS, weights_only=True)), bad)
+    with pytest.raises(CheckpointMismatchError, match=rf"{re.escape(str(bad))}: .*hold NaN or inf values.*retrain"):
+        module.load(bad, "embedded")
+
+
+def test_the_strict_loader_refuses_nan_but_keeps_an_inf_mask_buffer():
+    net = torch.nn.Linear(2, 3)
+    net.register_buffer("mask", torch.tensor([0.0, float("-inf")]))
+    good = {k: v.clone() for k, v in net.state_dict().items()}
+    load_state_strict(net, good, "f.pt", "toy")  # -inf in a buffer: a mask, loaded
+    with pytest.raises(CheckpointMismatchError, match=r"f\.pt: 1 tensor\(s\) .*\['weight'\]"):
+        load_state_strict(net, good | {"weight": torch.full((3, 2), float("inf"))}, "f.pt", "toy")
+    with pytest.raises(CheckpointMismatchError, match=r"\['mask'\]"):
+        load_state_strict(net, good | {"mask": torch.tensor([0.0, float("nan")])}, "f.pt", "toy")
+
+
 def test_no_hook_of_a_prior_is_probed_in_the_harness_or_the_priors():
     """benchmark/ and priors/ reach a prior's hooks through the contract (declared attributes with
     defaults, interfaces checked with isinstance), never by getattr / hasattr."""
