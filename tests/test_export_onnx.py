@@ -191,3 +191,16 @@ def test_no_prior_encode_motion_is_exact():
     assert torch.equal(out[:, :, 0], torch.eye(3).expand(B, T, 3, 3))
     with pytest.raises(ValueError, match="trans"):
         prior.encode_motion(rot, torch.zeros(B, T, 2), ts)
+
+
+def test_an_opset_too_old_for_the_decoder_is_one_line_naming_the_minimum(tmp_path, capfd):
+    """Motion-DVAE's decoder needs opset 13 (aten::unflatten): the error names --opset and 13, and
+    torch's dump of the whole graph stays off the terminal; no file is left."""
+    from benchmark.cli import main
+
+    out = tmp_path / "md.onnx"
+    assert main(["export-onnx", "motion-dvae", "--opset", "11", "--out", str(out)]) == 2
+    captured = capfd.readouterr()
+    assert "--opset 11: motion-dvae's decoder uses the operator aten::unflatten, which ONNX has from opset 13" in captured.err
+    assert "Torch IR graph" not in captured.out + captured.err
+    assert not any(tmp_path.iterdir())

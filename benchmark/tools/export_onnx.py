@@ -19,8 +19,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import contextlib
 import logging
 import os
+import re
+import sys
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -36,6 +40,39 @@ EXPORTER = "torch.onnx.export (TorchScript-based, dynamo=False)"
 # using aten::unflatten: 13) get torch's own UnsupportedOperatorError, which names the opset to use.
 MIN_DYNAMIC_BATCH_OPSET = 11
 _FALLBACK_MAX_OPSET = 20  # when torch does not say (torch 2.x: 20 to 23)
+
+
+@contextlib.contextmanager
+def _output_quiet():
+    """File descriptors 1 and 2 into a temporary file while the block runs, then back."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        with tempfile.TemporaryFile() as sink:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            try:
+                yield
+            finally:
+                sys.stdout.flush()
+                sys.stderr.flush()
+                os.dup2(saved[0], 1)
+                os.dup2(saved[1], 2)
+    finally:
+        for fd in saved:
+            os.close(fd)
+
+
+def _opset_problem(prior: str, opset: int, message: str) -> str:
+    """The one-line error for an operator the asked opset lacks (from torch's UnsupportedOperatorError)."""
+    op = re.search(r"operator '([^']+)'", message)
+    since = re.search(r"added in version (\d+)", message)
+    what = f"the operator {op.group(1)}" if op else "an operator"
+    if since:
+        return (f"--opset {opset}: {prior}'s decoder uses {what}, which ONNX has from opset {since.group(1)}; "
+                f"export with --opset {since.group(1)} or later (default 17)")
+    return f"--opset {opset}: {prior}'s decoder uses {what} this opset cannot express; export with a later --opset (default 17)"
 
 
 def supported_opsets() -> tuple[int, int]:
@@ -380,10 +417,15 @@ def export_onnx(
             # Python values; the parity check at another batch size is what proves the trace generalises
             warnings.simplefilter("ignore", category=DeprecationWarning)
             warnings.simplefilter("ignore", category=torch.jit.TracerWarning)
-            torch.onnx.export(
-                module, tuple(spec.example_inputs), str(tmp), input_names=list(spec.input_names),
-                output_names=list(spec.output_names), dynamic_axes=dynamic_axes, opset_version=int(opset), dynamo=False,
-            )
+            try:
+                with _output_quiet():  # a failed TorchScript export prints its whole graph (C++, fd 1)
+                    torch.onnx.export(
+                        module, tuple(spec.example_inputs), str(tmp), input_names=list(spec.input_names),
+                        output_names=list(spec.output_names), dynamic_axes=dynamic_axes, opset_version=int(opset),
+                        dynamo=False,
+                    )
+            except torch.onnx.errors.UnsupportedOperatorError as exc:
+                raise ValueError(_opset_problem(adapter.name, int(opset), str(exc))) from None
         _pin_static_dims(tmp, spec, example_outputs)
         parity = check_parity(spec, tmp, batch=batch, rtol=rtol, atol=atol) if check else None
         inputs, outputs = _graph_io(tmp)
