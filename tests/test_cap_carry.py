@@ -115,6 +115,7 @@ def test_a_carry_that_fails_midway_reruns_the_unit_and_keeps_the_original(tmp_pa
     assert "carrying it to the new cap failed (disk full)" in report.moved_why[new[0].unit_id]
     (stale,) = (tmp_path / "units" / "stale").glob("*.json")
     assert json.loads(stale.read_text()) == before
+    assert read_arrays(stale.with_suffix(".npz"))["spec_hash"] == before["spec_hash"]  # its fitted motions too
 
 
 @pytest.mark.parametrize("case", ["cap fell", "no carry", "several starts", "other sizes"])
@@ -127,6 +128,9 @@ def test_units_are_rerun_where_the_cap_did_not_rise_or_the_rules_forbid_it(tmp_p
     execute = _Converging()
     report = run_units(new, execute, tmp_path, announce=False, carry=None if case == "no carry" else _carry(new_spec))
     assert not report.carried and len(execute.calls) == len(new)
+    for target in report.moved:  # each stored result moved aside with its fitted motions, not overwritten
+        stale = json.loads(target.read_text())
+        assert read_arrays(target.with_suffix(".npz"))["spec_hash"] == stale["spec_hash"]
     if case == "several starts":
         assert all("several starts" in why for why in report.moved_why.values())
 

@@ -117,8 +117,9 @@ def progress_enabled(progress: bool | None) -> bool:
     return bool(progress)
 
 
-def move_aside(path: Path, unit_id: str, old_hash: str | None) -> Path:
-    """Move a stored result out of the way into ``units/stale/`` without overwriting anything."""
+def move_aside(path: Path, unit_id: str, old_hash: str | None, arrays: bool = True) -> Path:
+    """Move a stored result out of the way into ``units/stale/`` without overwriting anything; with
+    ``arrays``, its ``.npz`` (the fitted motions) goes with it, to the same name (``.npz``)."""
     stale = path.parent / "stale"
     stale.mkdir(parents=True, exist_ok=True)
     tag = old_hash[:8] if old_hash else "unreadable"
@@ -128,6 +129,9 @@ def move_aside(path: Path, unit_id: str, old_hash: str | None) -> Path:
         n += 1
         target = stale / f"{unit_id}.{tag}.{n}.json"
     os.replace(path, target)
+    npz = path.with_suffix(".npz")
+    if arrays and npz.exists():
+        os.replace(npz, target.with_suffix(".npz"))
     return target
 
 
@@ -166,13 +170,19 @@ def _carry(path: Path, unit: WorkUnit, raw: dict | None, old_hash: str | None, c
     problem = carry_problem(raw, unit, carry(unit))
     if problem is not None:
         return None, problem
-    target = move_aside(path, unit.unit_id, old_hash)
+    target = move_aside(path, unit.unit_id, old_hash, arrays=False)  # carry_unit copies the .npz there
     report.moved.append(target)
     try:
         record = carry_unit(raw, unit, out_dir, target)
         validate_unit_result(record, unit, source=str(path))
         atomic_write_json(path, record)
     except (ValueError, OSError) as exc:  # the original is safe in units/stale/: the unit is computed again
+        npz, kept = path.with_suffix(".npz"), target.with_suffix(".npz")
+        if npz.exists() and not kept.exists():
+            try:
+                os.replace(npz, kept)
+            except OSError:
+                pass
         report.moved_why[unit.unit_id] = f"spec hash differs; carrying it to the new cap failed ({exc})"
         log.warning("%s: carrying it to the new cap failed (%s); the original is in %s, rerunning", unit.unit_id, exc,
                     target)
