@@ -101,3 +101,48 @@ def test_a_new_rows_other_observation_fingerprint_is_recorded_cell_by_cell():
     assert cells_seen_differently(merged) == []  # recorded: not a finding
     merged["provenance"]["rows_replaced"][0]["observation_fingerprints_differ"] = []
     assert cells_seen_differently(merged) == [2]
+
+
+def test_cells_are_matched_by_their_coordinates_never_by_position():
+    """A NEW whose row lists its cells in another order (hand-made, or another writer's) merges to
+    the same table; a row missing a cell, repeating one or not a row at all is refused by name."""
+    full, base, new = _tables()
+    shuffled = copy.deepcopy(new)
+    shuffled["rows"][0]["cells"].reverse()
+    assert replace_rows(base, shuffled)["rows"] == full["rows"]
+    short = copy.deepcopy(new)
+    short["rows"][0]["cells"].pop()
+    with pytest.raises(ValueError, match=r"NEW.json: row 'hmvae' does not hold the grid's cells"):
+        replace_rows(base, short, source="NEW.json")
+    twice = copy.deepcopy(new)
+    twice["rows"][0]["cells"][-1] = copy.deepcopy(twice["rows"][0]["cells"][0])
+    with pytest.raises(ValueError, match=r"row 'hmvae' holds the cell .* twice"):
+        replace_rows(base, twice, source="NEW.json")
+    for bad in ({"cells": []}, {"prior": "hmvae"}, "x"):
+        with pytest.raises(ValueError, match=r"NEW.json: row 0 is not a table row"):
+            replace_rows(base, {**new, "rows": [bad]}, source="NEW.json")
+    with pytest.raises(ValueError, match=r"NEW.json: holds no row"):
+        replace_rows(base, {**new, "rows": []}, source="NEW.json")
+
+
+def test_merge_rows_never_writes_over_its_inputs_or_outside_out(tmp_path, capsys):
+    from pathlib import Path
+
+    from benchmark.cli import main
+
+    res = tmp_path / "res"
+    res.mkdir()
+    base = res / "table1.smoke.json"
+    base.write_text((Path(__file__).resolve().parents[1] / "results" / "table1.smoke.json").read_text())
+    before = base.read_bytes()
+    cases = (
+        (["--out", str(res), "--stem", "table1.smoke", "--force"], "is BASE (and NEW), which this command reads"),
+        (["--out", str(tmp_path / "m"), "--stem", "../escaped"], "--stem '../escaped': must be a plain file name"),
+        (["--out", str(base)], "is a file, not a folder"),
+    )
+    for extra, message in cases:
+        assert main(["merge-rows", str(base), str(base), *extra]) == 2
+        assert message in capsys.readouterr().err
+    assert base.read_bytes() == before and not (tmp_path / "escaped.json").exists()
+    assert main(["merge-rows", str(base), str(base), "--out", str(tmp_path / "m")]) == 0
+    assert (tmp_path / "m" / "table1.json").is_file()

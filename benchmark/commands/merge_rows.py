@@ -24,11 +24,22 @@ def _cmd_merge_rows(args) -> int:
     from benchmark.run.table_merge import replace_rows
     from benchmark.run.writers import FORMATS, write_table
 
+    from benchmark.core.outdir import check_out_dir
+
+    if args.stem is not None and (not args.stem or Path(args.stem).name != args.stem or args.stem in (".", "..")):
+        raise ValueError(f"--stem {args.stem!r}: must be a plain file name without a folder (e.g. table1.quick); "
+                         "give the folder with --out")
     base, new = _read_table(args.base, "BASE"), _read_table(args.new, "NEW")
     merged = replace_rows(base, new, source=args.new, base_source=args.base)
-    out = Path(args.out)
+    out = check_out_dir(args.out)
     stem = args.stem or merged["table"]
     targets = [out / f"{stem}.{fmt}" for fmt in FORMATS]
+    inputs = {Path(args.new).resolve(): "NEW"}
+    inputs[Path(args.base).resolve()] = "BASE" if Path(args.base).resolve() not in inputs else "BASE (and NEW)"
+    clash = [f"{t} is {inputs[t.resolve()]}" for t in targets if t.resolve() in inputs]
+    if clash:
+        raise FileExistsError(f"--out {out} --stem {stem}: {'; '.join(clash)}, which this command reads; write the merged "
+                              "table elsewhere (another --out or --stem) and move it over the input once checked")
     existing = [str(t) for t in targets if t.exists()]
     if existing and not args.force:
         raise FileExistsError(f"--out {out}: {', '.join(existing)} exist; choose another --out or --stem, or pass --force to replace them")

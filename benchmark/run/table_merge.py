@@ -20,6 +20,7 @@ Used by the quick regression (``BENCHMARK_REGENERATE_PRIORS``, tests/test_quick_
 from __future__ import annotations
 
 import copy
+import itertools
 import math
 import re
 from typing import Mapping
@@ -46,6 +47,9 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
             raise ValueError(f"{source}: field {key!r} differs from {base_source}'s ({_short(new.get(key))} against "
                              f"{_short(base.get(key))}): its rows measure something else; rerun those priors with "
                              f"{base_source}'s table, profile and seed")
+    base, new = _cells_by_coordinates(base, base_source), _cells_by_coordinates(new, source, like=base)
+    if not new["rows"]:
+        raise ValueError(f"{source}: holds no row; give the table of a run of the priors whose rows to replace")
     replaced = [row["prior"] for row in new["rows"]]
     if len(set(replaced)) != len(replaced):
         raise ValueError(f"{source}: a prior has two rows: {replaced}")
@@ -92,6 +96,42 @@ def replace_rows(base: Mapping, new: Mapping, source: str = "new", base_source: 
             if raise_cap else {}),
          "provenance": {k: v for k, v in (new.get("provenance") or {}).items() if k != "rows_replaced"}})
     return out
+
+
+def _cells_by_coordinates(table: Mapping, source: str, like: Mapping | None = None) -> dict:
+    """A copy of ``table`` whose every row holds one cell per grid cell, in the order of the first
+    row of ``like`` (or of its own): rows are matched cell by cell by their coordinates, never by
+    position. A row that is not a table row, lacks a cell, repeats one or has one off the grid is
+    refused, naming ``source``, the prior and the cell."""
+    table = copy.deepcopy(dict(table))
+    rows = table["rows"]
+    for i, row in enumerate(rows):
+        if not isinstance(row, Mapping) or not isinstance(row.get("prior"), str) or not isinstance(row.get("cells"), list) \
+                or not all(isinstance(c, Mapping) for c in row["cells"]):
+            raise ValueError(f"{source}: row {i} is not a table row (a 'prior' name and a list of 'cells'); give a "
+                             "table JSON written by `python -m benchmark run`")
+    ref = like if like is not None else table
+    if not ref["rows"]:
+        return table
+    axes = list(ref["grid"]) if isinstance(ref.get("grid"), Mapping) else []
+    order = [tuple(c.get(k) for k in axes) for c in ref["rows"][0]["cells"]]
+    grid = [tuple(c) for c in itertools.product(*(ref["grid"][k] for k in axes))] if axes else []
+    if not axes or sorted(map(repr, order)) != sorted(map(repr, grid)):
+        raise ValueError(f"{source}: the cells of its first row are not the grid {ref.get('grid')!r}, "
+                         "cell for cell; give a table JSON written by `python -m benchmark run`")
+    for row in rows:
+        by = {}
+        for cell in row["cells"]:
+            key = tuple(cell.get(k) for k in axes)
+            if key in by:
+                raise ValueError(f"{source}: row {row['prior']!r} holds the cell {dict(zip(axes, key))} twice")
+            by[key] = cell
+        if set(by) != set(order):
+            wrong = [dict(zip(axes, k)) for k in order if k not in by] or [dict(zip(axes, k)) for k in by if k not in order]
+            raise ValueError(f"{source}: row {row['prior']!r} does not hold the grid's cells (e.g. {wrong[0]}); "
+                             "give a table JSON written by `python -m benchmark run` for the same table")
+        row["cells"] = [by[k] for k in order]
+    return table
 
 
 def _cap_raise(base: Mapping, new: Mapping, source: str, base_source: str) -> tuple[int, int] | None:
