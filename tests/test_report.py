@@ -246,6 +246,27 @@ def test_a_column_shown_as_another_s_is_animated_once(run_dir, tmp_path):
     assert "the fits of column 10 fps: animated there" in index.read_text(encoding="utf-8")
 
 
+def test_units_of_another_run_into_the_folder_are_not_shown_under_the_table(run_dir, tmp_path):
+    """A later run into the folder under other settings (stopped before it wrote its table) leaves
+    units that are not the table's: the report shows none of their numbers or fits under its cells."""
+    from benchmark.data.unit_arrays import arrays_path
+    from benchmark.report import build_report
+
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    unit_file = sorted((run / "units").glob("*.json"))[0]
+    unit = json.loads(unit_file.read_text())
+    for row in unit["per_sequence"]:
+        row["sums"] = {k: 2.0 * v for k, v in row["sums"].items()}  # another fit of the same cell
+    unit_file.write_text(json.dumps(unit))
+    index = build_report(run, tmp_path / "r", sequences=1)
+    text = index.read_text(encoding="utf-8")
+    assert text.count("are not the ones table1.json was made from") == 1
+    assert arrays_path(run, unit["unit_id"]).exists()  # the file is there; the page does not use it
+    refs = _check_page(index)
+    assert len([s for s in refs.srcs if "anim__" in s]) == 1  # the other cell's only
+
+
 def test_a_failing_animation_is_said_on_the_page(run_dir, tmp_path):
     from benchmark.report import build_report
 

@@ -92,7 +92,7 @@ def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, f
         for i, c in enumerate(row["cells"]):
             cell = {k: c[k] for k in grid_keys}
             same = c.get("same_as")  # a copied column: its source's units and fits, animated once, under the source
-            units = run.units_of(name, row["prior"], {**cell, **(same or {})})
+            units, mismatch = run.units_for(table, row["prior"], {**cell, **(same or {})}, c)
             cr = CellReport(table=name, prior=row["prior"], cell=cell, units=units,
                             anchor=f"seq-{stem}-{safe_name(row['prior'])}-{i}")
             cr.seq_rows = sequence_rows(units, metric_names)
@@ -100,6 +100,8 @@ def _table_section(run: RunFolder, table: dict, img_dir: Path, sequences: int, f
                      animation_fps, jobs)
             if same and units:
                 cr.no_animation = f"the fits of column {cell_text(same)}: animated there"
+            if mismatch:
+                cr.no_animation = mismatch
             reports[(row["prior"], i)] = cr
     return lambda: _table_html(table, reports, img_dir, plots, stem, priors, colours, metric_names, head, cells,
                                grid_keys)
