@@ -71,6 +71,12 @@ def main(argv=None) -> int:
         return 0 if args.command is None else 2
     from benchmark.core.interrupts import exit_code, sigterm_raises, stop_message
 
+    empty = [opt for opt in ("out", "out_dir") if isinstance(getattr(args, opt, None), str) and not getattr(args, opt).strip()]
+    if empty:  # `--out "$DIR"` with DIR unset: never the current folder
+        print(f"error: --{empty[0].replace('_', '-')} '': empty; give a folder path (or the file the command writes), "
+              "e.g. --out runs/mytable", file=sys.stderr)
+        return 2
+
     try:
         with sigterm_raises():  # SIGTERM unwinds like Ctrl-C: workers stopped, temp files removed, --out unlocked
             return int(args.func(args) or 0)

@@ -192,11 +192,37 @@ def _commands(tmp: Path, out: Path) -> dict[str, list[str]]:
         "data make-scans": ["data", "make-scans", "--out", str(out), "--sequences", "1"],
         "train-report": ["train-report", "--weights-dir", str(weights), "--out", str(out)],
         "data convert": ["data", "convert", str(motion), "--out", str(out / "m.npz")],
+        "merge-rows": ["merge-rows", str(run / "table1.json"), str(run / "table1.json"), "--out", str(out)],
     }
 
 
 COMMANDS = ["run", "complete", "perf", "export-onnx", "train", "fit-check", "report", "data make-scans", "train-report",
-            "data convert"]
+            "data convert", "merge-rows"]
+FOLDER_OUT = [c for c in COMMANDS if c not in ("export-onnx", "data convert")]  # --out names a folder
+
+
+@pytest.mark.parametrize("command", FOLDER_OUT)
+def test_an_empty_out_is_refused_not_read_as_the_current_folder(command, tmp_path, monkeypatch, capsys):
+    """``--out "$DIR"`` with DIR unset must not write into (and over files of) the current folder."""
+    monkeypatch.chdir(tmp_path)
+    argv = _commands(tmp_path, tmp_path / "x")[command]
+    argv[argv.index("--out") + 1] = ""
+    _no_work(monkeypatch)
+    before = tree(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--out '': empty; give a folder path" in err, (command, err)
+    assert tree(tmp_path) == before
+
+
+def test_run_never_replaces_table_files_it_did_not_write(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "table1.md").write_text("my notes")
+    _no_work(monkeypatch)
+    assert main(["run", "table1", "--prior", "no-prior", "--profile", "smoke", "--out", str(out)]) == 2
+    assert "table1.md exists and is not an earlier run's table 'table1'" in capsys.readouterr().err
+    assert (out / "table1.md").read_text() == "my notes"
 
 
 @pytest.mark.parametrize("bad", ["file", "read-only"])
@@ -348,3 +374,9 @@ def test_report_pre_checks(tmp_path, capsys):
     assert main(["report", str(run), "--out", str(tmp_path)]) == 2
     assert "contains the run folder" in capsys.readouterr().err
     np.testing.assert_equal(sorted(p.name for p in run.iterdir()), ["table1.json"])
+
+
+def test_an_empty_profile_is_unknown_not_the_default(tmp_path, monkeypatch, capsys):
+    _no_work(monkeypatch)
+    assert main(["run", "table1", "--prior", "no-prior", "--profile", "", "--out", str(tmp_path / "o")]) == 2
+    assert "unknown profile ''" in capsys.readouterr().err

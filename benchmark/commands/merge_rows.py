@@ -29,9 +29,9 @@ def _cmd_merge_rows(args) -> int:
     if args.stem is not None and (not args.stem or Path(args.stem).name != args.stem or args.stem in (".", "..")):
         raise ValueError(f"--stem {args.stem!r}: must be a plain file name without a folder (e.g. table1.quick); "
                          "give the folder with --out")
+    out = check_out_dir(args.out)
     base, new = _read_table(args.base, "BASE"), _read_table(args.new, "NEW")
     merged = replace_rows(base, new, source=args.new, base_source=args.base)
-    out = check_out_dir(args.out)
     stem = args.stem or merged["table"]
     targets = [out / f"{stem}.{fmt}" for fmt in FORMATS]
     inputs = {Path(args.new).resolve(): "NEW"}

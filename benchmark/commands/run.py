@@ -20,6 +20,29 @@ def _check_data_arg(data: str | None) -> None:
                                 "(or one file), or leave --data out for the synthetic test split")
 
 
+def _check_table_files(out: Path, table: str) -> None:
+    """The run writes ``<out>/<table>.{json,md,csv,tex}``: it replaces them only where they are an
+    earlier run's (the JSON beside them is a table JSON of this table), never a user's own files."""
+    import json
+
+    from benchmark.core.outdir import OutDirError
+    from benchmark.run.writers import FORMATS
+
+    existing = [out / f"{table}.{fmt}" for fmt in FORMATS if (out / f"{table}.{fmt}").exists()]
+    if not existing:
+        return
+    try:
+        ours = json.loads((out / f"{table}.json").read_text()).get("table") == table
+    except (OSError, ValueError, AttributeError):
+        ours = False
+    if not ours:
+        one = len(existing) == 1
+        raise OutDirError(f"--out {out}: {', '.join(p.name for p in existing)} {'exists and is' if one else 'exist and are'} "
+                          f"not an earlier run's table {table!r} (no table JSON of it beside {'it' if one else 'them'}); "
+                          f"the run would replace {'it' if one else 'them'}: choose another --out, or move "
+                          f"{'it' if one else 'them'} away")
+
+
 def _backend_options(args, device: str) -> dict:
     """--jobs / --ray-address / --cpus-per-unit / --gpus-per-unit as options of the chosen backend."""
     from benchmark.run.backends.local import default_jobs
@@ -47,9 +70,10 @@ def _cmd_run(args) -> int:
     # everything a user can get wrong is checked here, before the body, data or any prior loads
     spec = load_table_spec(args.table)
     device = resolve_device(args.device)
-    profile_name = args.profile or ("full" if device.startswith("cuda") else "quick")
+    profile_name = args.profile if args.profile is not None else ("full" if device.startswith("cuda") else "quick")
     profile = get_profile(profile_name, table=spec["name"])
     out = check_out_dir(args.out)  # cheap, and the costliest mistake to find late: first
+    _check_table_files(out, spec["name"])
     priors = args.prior or default_priors(spec)
     for name in priors:
         get_prior_class(name)

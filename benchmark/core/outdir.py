@@ -56,6 +56,8 @@ def check_out_dir(out: str | os.PathLike, min_free_bytes: int = MIN_FREE_BYTES, 
     """Create ``out`` if needed and check that a run can write its results there.
 
     Raises :class:`OutDirError` naming the path, what is wrong and the fix. Returns the folder."""
+    if not str(out).strip():
+        raise OutDirError(f"{what} {str(out)!r}: empty; give a folder path (it is created if missing), e.g. --out runs/mytable")
     path = Path(out).expanduser()
     if path.exists() and not path.is_dir():
         raise OutDirError(f"{what} {path}: is a file, not a folder; give a folder path (it is created if missing), "
