@@ -64,3 +64,21 @@ def test_error_breakdown_refuses_what_it_cannot_read(tmp_path, anny_body):
         run_breakdown(tmp_path, anny_body)
     with pytest.raises(ValueError, match="no completion unit"):
         run_breakdown(tmp_path, anny_body, priors=["absent"])
+
+
+def test_units_left_out_are_said_never_silent(tmp_path, anny_body):
+    """A unit without its arrays is not summed silently away: its cell's row says it was left out
+    (a cell with none left gets a row of its own), and a damaged unit file is named."""
+    _unit(tmp_path, "moved__b000", 0.1, [1, 2, 4, 5])
+    _unit(tmp_path, "moved__b001", 0.1, [1, 2, 4, 5])
+    _unit(tmp_path, "gone__b000", 0.1, [1])
+    (tmp_path / "units" / "moved__b001.npz").unlink()
+    (tmp_path / "units" / "gone__b000.npz").unlink()
+    rows = {r["prior"]: r for r in run_breakdown(tmp_path, anny_body)}
+    assert rows["moved"]["sequences"] == 2 and rows["moved"]["left_out"] == [("moved__b001.json", "no moved__b001.npz")]
+    assert rows["gone"]["sequences"] == 0 and np.isnan(rows["gone"]["mpjpe_mm"])
+    text = format_rows(list(rows.values()))
+    assert "2 *" in text and "left out: moved__b001.json (no moved__b001.npz); gone__b000.json (no gone__b000.npz)" in text
+    (tmp_path / "units" / "moved__b000.json").write_text('{"unit_id": "moved__b0')
+    with pytest.raises(ValueError, match=r"moved__b000\.json: not a readable unit result"):
+        run_breakdown(tmp_path, anny_body)

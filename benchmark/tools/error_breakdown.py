@@ -83,13 +83,22 @@ def run_breakdown(run_dir, body, priors: list[str] | None = None) -> list[dict]:
     sums: dict = defaultdict(lambda: defaultdict(float))
     counts: dict = defaultdict(int)
     skipped = []
+    left_out: dict = defaultdict(list)  # (prior, cell) -> [(unit file, why)]
     for js in sorted(units.glob("*.json")):
-        unit = json.loads(js.read_text())
+        try:
+            unit = json.loads(js.read_text())
+            if not isinstance(unit, dict):
+                raise ValueError("not a JSON object")
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"error-breakdown: {js}: not a readable unit result ({exc}); move it away (or rerun the "
+                             "table into the folder: it moves it to units/stale/ and computes the unit again)") from None
         npz = js.with_suffix(".npz")
         if priors and unit.get("prior") not in priors:
             continue
+        key = (unit.get("prior"), tuple((unit.get("cell") or {}).items()))
         if unit.get("na_reason") or not npz.exists():
             skipped.append(js.name)
+            left_out[key].append((js.name, "n/a" if unit.get("na_reason") else f"no {npz.name}"))
             continue
         arrays = read_arrays(npz)
         if str(arrays.get("spec_hash")) != unit.get("spec_hash"):
@@ -97,8 +106,8 @@ def run_breakdown(run_dir, body, priors: list[str] | None = None) -> list[dict]:
                              f"(spec_hash {arrays.get('spec_hash')} vs {unit.get('spec_hash')}); rerun the unit")
         if "gt_quat" not in arrays:
             skipped.append(js.name)
+            left_out[key].append((js.name, "no ground-truth motion stored"))
             continue
-        key = (unit["prior"], tuple((unit.get("cell") or {}).items()))
         for name, (total, frames) in unit_errors(body, arrays).items():
             sums[key][name] += float(total.sum())
             sums[key][name + "/frames"] += float(frames.sum())
@@ -110,10 +119,16 @@ def run_breakdown(run_dir, body, priors: list[str] | None = None) -> list[dict]:
     for key, s in sums.items():
         prior, cell = key
         row = {"prior": prior, "cell": dict(cell), "sequences": counts[key]}
+        if left_out.get(key):  # a cell figured from part of its units only: said, never silent
+            row["left_out"] = left_out[key]
         for name in FIGURES:
             frames = s[name + "/frames"]
             row[name] = s[name] / frames if frames else float("nan")
         rows.append(row)
+    for key, why in left_out.items():  # a cell none of whose units could be read: a row saying so
+        if key not in sums:
+            rows.append({"prior": key[0], "cell": dict(key[1]), "sequences": 0, "left_out": why,
+                         **{name: float("nan") for name in FIGURES}})
     return rows
 
 
@@ -126,7 +141,12 @@ def format_rows(rows: list[dict]) -> str:
     head = ["prior", "cell", "seq"] + [f.replace("_mm", "") for f in FIGURES]
     lines = [head]
     for r in rows:
-        lines.append([r["prior"], cell_name(r["cell"]), str(r["sequences"])] + [f"{r[f]:.1f}" for f in FIGURES])
+        seq = str(r["sequences"]) + (" *" if r.get("left_out") else "")
+        lines.append([r["prior"], cell_name(r["cell"]), seq] + [f"{r[f]:.1f}" for f in FIGURES])
     widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
     out = ["  ".join(x.ljust(w) if i < 2 else x.rjust(w) for i, (x, w) in enumerate(zip(line, widths))) for line in lines]
+    partial = [r for r in rows if r.get("left_out")]
+    if partial:
+        out.append("* from part of the cell's units only; left out: " + "; ".join(
+            f"{name} ({why})" for r in partial for name, why in r["left_out"]))
     return "\n".join(out)
