@@ -180,3 +180,32 @@ def test_main_compare_only_the_given_priors(base, tmp_path):
     assert out.getvalue().rstrip().splitlines()[-1].startswith("OK: 18 cell x metric comparisons, 0 failing")
     with pytest.raises(ValueError, match=r"b.json: no row for --prior q; its rows: p"):
         main_compare(pa, pb, [], priors=["q"])
+
+
+def test_malformed_tables_are_refused_by_field_never_ok():
+    """A second row of one prior (later rows overwrote earlier ones: a conflicting copy passed as OK),
+    a repeated cell, a grid axis that is not a list, an unreadable metric_na or an integer no float
+    holds: each refused naming the file and the field."""
+    units = plan(priors=["p", "q"])
+    table = derive_table(table_spec(), [FakeExecutor()(u) for u in units], meta(units))
+    dup = copy.deepcopy(table)
+    worse = copy.deepcopy(dup["rows"][0])
+    for cell in worse["cells"]:
+        cell["mpjpe_mm"] += 100.0
+    dup["rows"].insert(0, worse)
+    with pytest.raises(ValueError, match=r"B.json: rows\[1\]: prior 'p' has two rows"):
+        compare_tables(table, dup, labels=("A.json", "B.json"))
+    rep = copy.deepcopy(table)
+    rep["rows"][0]["cells"][1] = copy.deepcopy(rep["rows"][0]["cells"][0])
+    with pytest.raises(ValueError, match=r"cells\[1\] repeats the cell"):
+        compare_tables(table, rep, labels=("A.json", "B.json"))
+    with pytest.raises(ValueError, match=r"field 'grid' must be an object \(axis -> list of values\)"):
+        compare_tables(table, {**table, "grid": {"points": 100}}, labels=("A.json", "B.json"))
+    odd = copy.deepcopy(table)
+    odd["rows"][0]["cells"][0].update(mpjpe_mm=None, metric_na="x")
+    ok, _ = compare_tables(table, odd)
+    assert not ok
+    big = copy.deepcopy(table)
+    big["rows"][0]["cells"][0]["mpjpe_mm"] = 10 ** 400
+    with pytest.raises(ValueError, match="not a finite number"):
+        compare_tables(table, big)

@@ -79,19 +79,29 @@ def _check_table(table, label: str) -> None:
         raise ValueError(f"{label}: field 'format_version' is {version!r}; this harness reads table format version(s) "
                          f"{sorted(KNOWN_FORMAT_VERSIONS)}. Compare it with the harness version that wrote it, or rerun "
                          "the table with this one")
-    if not isinstance(table["grid"], Mapping):
-        raise ValueError(f"{label}: field 'grid' must be an object (axis -> values), got {type(table['grid']).__name__}")
+    if not isinstance(table["grid"], Mapping) or not all(isinstance(v, list) for v in table["grid"].values()):
+        raise ValueError(f"{label}: field 'grid' must be an object (axis -> list of values), got {table['grid']!r:.80}")
     if not isinstance(table["metrics"], list) or not all(isinstance(m, Mapping) and isinstance(m.get("name"), str)
                                                          for m in table["metrics"]):
         raise ValueError(f"{label}: field 'metrics' must be a list of objects with a 'name'")
     if not isinstance(table["rows"], list):
         raise ValueError(f"{label}: field 'rows' must be a list of rows")
+    seen = set()
     for i, row in enumerate(table["rows"]):
         if not isinstance(row, Mapping) or not isinstance(row.get("prior"), str) or not isinstance(row.get("cells"), list):
             raise ValueError(f"{label}: rows[{i}] must be an object with 'prior' (a string) and 'cells' (a list)")
+        if row["prior"] in seen:
+            raise ValueError(f"{label}: rows[{i}]: prior {row['prior']!r} has two rows; a table holds one row per prior "
+                             "(the file was edited or written by another tool: rerun the table)")
+        seen.add(row["prior"])
+        cells = set()
         for j, cell in enumerate(row["cells"]):
             if not isinstance(cell, Mapping):
                 raise ValueError(f"{label}: rows[{i}] ({row['prior']}) cells[{j}] must be an object")
+            key = canonical_json({k: cell.get(k) for k in table["grid"]})
+            if key in cells:
+                raise ValueError(f"{label}: rows[{i}] ({row['prior']}) cells[{j}] repeats the cell {key}")
+            cells.add(key)
 
 
 def _index(table: Mapping) -> dict[tuple[str, str], tuple[dict, Mapping]]:
@@ -113,8 +123,11 @@ def _value(cell: Mapping, metric: str, where: str = "") -> tuple[float | None, s
         return None, None, False
     if cell[metric] is None:
         base = metric[:-4] if metric.endswith("_std") else metric
-        return None, (cell.get("metric_na") or {}).get(base, "no value"), True
+        na = cell.get("metric_na")
+        return None, (na.get(base, "no value") if isinstance(na, Mapping) else "no value"), True
     value = cell[metric]
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 1e300:
+        value = float("inf")  # an integer no float holds: not finite either
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ValueError(f"{where}: metric {metric!r} is {value!r}, not a finite number (or null with its reason in "
                          "'metric_na'); the file was edited or written by another tool: rerun the table")
