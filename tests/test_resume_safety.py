@@ -14,12 +14,14 @@ import textwrap
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from benchmark.run import runner
 from benchmark.core.outdir import OutDirError, OutDirLock, check_out_dir
 from benchmark.core.json_io import atomic_write_json
+from benchmark.data.unit_arrays import write_arrays
 from benchmark.core.work_units import checksum_problem, plan_units, unit_checksum, unit_path
 from fake_units import FakeExecutor, plan, profile, table_spec
 from tiny_run import tiny_table1, write_motion
@@ -220,11 +222,13 @@ def test_files_follow_the_umask(tmp_path, mask, mode):
     old = os.umask(mask)
     try:
         atomic_write_json(tmp_path / "t.json", {"a": 1})
+        write_arrays(tmp_path / "t.npz", {"x": np.zeros(2)})  # a unit's fitted motions, as its JSON
         units = plan(priors=["p"])[:1]
         runner.run_units(units, FakeExecutor(), tmp_path / "run", progress=False, announce=False)
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "t.json").stat().st_mode) == mode
+    assert stat.S_IMODE((tmp_path / "t.npz").stat().st_mode) == mode
     assert stat.S_IMODE(unit_path(tmp_path / "run", units[0].unit_id).stat().st_mode) == mode
 
 

@@ -26,7 +26,7 @@ def sha256_json(obj: Any) -> str:
     return hashlib.sha256(canonical_json(obj).encode("utf-8")).hexdigest()
 
 
-def _umask() -> int:
+def current_umask() -> int:
     """The process umask (read by setting and restoring it; there is no getter)."""
     mask = os.umask(0o022)
     os.umask(mask)
@@ -43,7 +43,7 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         try:
-            os.fchmod(fd, 0o666 & ~_umask())
+            os.fchmod(fd, 0o666 & ~current_umask())
         except (AttributeError, OSError):  # no fchmod (Windows): keep mkstemp's mode
             pass
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:

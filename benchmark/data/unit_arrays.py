@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmark.core.json_io import current_umask
+
 FORMAT = 1
 MAX_OBS_POINTS = 128
 ARRAYS_KEY = "arrays"
@@ -47,6 +49,10 @@ def write_arrays(path: str | os.PathLike, arrays: dict) -> Path:
         raise TypeError(f"unit arrays for {path.name}: entries {bad} are not plain numpy arrays")
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        try:  # the mode a plain open() gives (as the unit's JSON: benchmark.core.json_io), not mkstemp's 0600
+            os.fchmod(fd, 0o666 & ~current_umask())
+        except (AttributeError, OSError):
+            pass
         with os.fdopen(fd, "wb") as fh:
             np.savez_compressed(fh, **arrays)
             fh.flush()
