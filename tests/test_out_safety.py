@@ -374,6 +374,11 @@ def test_report_pre_checks(tmp_path, capsys):
     assert main(["report", str(run), "--out", str(tmp_path)]) == 2
     assert "contains the run folder" in capsys.readouterr().err
     np.testing.assert_equal(sorted(p.name for p in run.iterdir()), ["table1.json"])
+    # a damaged table JSON is named as such, not "no table JSON here"
+    text = (run / "table1.json").read_text()
+    (run / "table1.json").write_text(text[: len(text) // 2])
+    assert main(["report", str(run), "--out", str(tmp_path / "r")]) == 2
+    assert "table1.json (" in capsys.readouterr().err
 
 
 def test_an_empty_profile_is_unknown_not_the_default(tmp_path, monkeypatch, capsys):

@@ -88,7 +88,17 @@ def check_run_folder(path) -> Path:
     if not root.is_dir():
         raise FileNotFoundError(f"report: run folder {root} does not exist (give the --out folder of "
                                 "'python -m benchmark run TABLE', default runs/latest)")
-    if not any(is_table_file(f) for f in root.glob("*.json") if not f.name.startswith(".")):
+    files = [f for f in root.glob("*.json") if not f.name.startswith(".")]
+    if not any(is_table_file(f) for f in files):
+        damaged = []
+        for f in files:
+            try:
+                json.loads(f.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                damaged.append(f"{f.name} ({exc})")
+        if damaged:
+            raise ValueError(f"report: {root}: its JSON file(s) {', '.join(damaged)} cannot be read (truncated or "
+                             "edited?); rerun the table into the folder (its units are reused) to write them again")
         raise no_table_error(root)
     return root
 
