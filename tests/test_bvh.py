@@ -235,6 +235,9 @@ Frame Time: 0.02
     p.write_text(text.replace("Yrotation Xrotation Zrotation", "Yrotation Xrotation Wrotation"))
     with pytest.raises(ValueError, match=r"tiny.bvh:9: unknown channel 'Wrotation'"):
         parse_bvh(p)
+    # a file written with a UTF-8 byte-order mark (some Windows exporters) reads the same
+    p.write_text(text, encoding="utf-8-sig")
+    np.testing.assert_array_equal(parse_bvh(p).values, d.values)
     # a BVH skeleton without the CMU joints needs its own joint map
     p.write_text(text)
     with pytest.raises(ValueError, match=r"maps to BVH joint 'Hips', which the file lacks.*joint_map"):

@@ -136,7 +136,7 @@ def parse_bvh(path) -> BVHData:
         raise ValueError(f"{path}: a binary file, not a BVH (text: HIERARCHY ... then MOTION ...); export the take as "
                          "BVH again, or check that this is the file you meant")
     try:
-        text = raw.decode("utf-8")
+        text = raw.decode("utf-8-sig")  # a byte-order mark (some Windows exporters) is not part of the text
     except UnicodeDecodeError:
         text = raw.decode("latin-1")  # older exporters: joint names in a legacy 8-bit encoding
     m = re.search(r"^\s*MOTION\s*$", text, re.MULTILINE)
