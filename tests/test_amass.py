@@ -161,3 +161,15 @@ def test_a_data_folder_skips_amass_shape_files(tmp_path):
     (sub / "01_01_poses.npz").unlink()
     with pytest.raises(FileNotFoundError, match=r"only AMASS shape files .*shape\.npz"):
         load_motions(str(tmp_path / "CMU"), 0.1)
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("mocap_framerate", np.array([]), r"key 'mocap_framerate' must hold one number"),
+    ("mocap_framerate", np.array("sixty"), r"key 'mocap_framerate' must hold one number"),
+    ("betas", np.array("none"), r"key 'betas' must hold the body's shape coefficients"),
+])
+def test_a_malformed_field_is_named(tmp_path, field, value, message):
+    p = tmp_path / "seq_poses.npz"
+    write_amass(p, **{field: value})
+    with pytest.raises(ValueError, match=rf"seq_poses\.npz: {message}"):
+        load_amass(p)

@@ -139,6 +139,9 @@ def test_load_errors_name_file_and_field(tmp_path):
              source=np.array(["a", None], dtype=object))
     with pytest.raises(ValueError, match=r"motion.npz: cannot read without pickle"):
         Motion.load(p)
+    np.savez(p, poses=np.zeros((10, 22, 3)), trans=np.zeros((10, 3)), fps=25.0, shape=np.array("abc"))
+    with pytest.raises(ValueError, match=r"motion.npz: field 'shape' has non-numeric dtype"):
+        Motion.load(p)
     # fps alone is enough for a hand-written file
     np.savez(p, poses=np.zeros((10, 22, 3)), trans=np.zeros((10, 3)), fps=25.0)
     m = Motion.load(p)

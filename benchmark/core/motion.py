@@ -295,6 +295,9 @@ class Motion:
             if not np.issubdtype(arr.dtype, np.number):
                 raise ValueError(f"{where}: field {name!r} has non-numeric dtype {arr.dtype}")
             tensors[name] = torch.as_tensor(arr, dtype=torch.float64 if name == "timestamps" else torch.float32)
+        if "shape" in data and not np.issubdtype(data["shape"].dtype, np.number):
+            raise ValueError(f"{where}: field 'shape' has non-numeric dtype {data['shape'].dtype} (the body's shape "
+                             "parameters are numbers); remove the field or write the numbers")
         shape = torch.as_tensor(data["shape"], dtype=torch.float32) if "shape" in data else None
         _validate(tensors["poses"], tensors["trans"], tensors["timestamps"], shape, where)
         meta_text = text("meta")

@@ -153,7 +153,11 @@ def load_amass(
             f"{path}: missing key 'mocap_framerate' (SMPL-H) or 'mocap_frame_rate' (SMPL-X) "
             f"(keys present: {sorted(data)})"
         )
-    stored_fps = float(np.asarray(data[rate_key]).reshape(-1)[0])
+    rate_arr = np.asarray(data[rate_key])
+    if rate_arr.size != 1 or not np.issubdtype(rate_arr.dtype, np.number):
+        raise ValueError(f"{path}: key {rate_key!r} must hold one number (the capture's frames per second), got "
+                         f"{rate_arr.dtype} {rate_arr.shape}")
+    stored_fps = float(rate_arr.reshape(-1)[0])
     if not (stored_fps > 0 and math.isfinite(stored_fps)):
         raise ValueError(f"{path}: key {rate_key!r} = {stored_fps!r} is not a positive frame rate")
 
@@ -197,6 +201,9 @@ def load_amass(
 
     shape = None
     if "betas" in data:
+        if not np.issubdtype(np.asarray(data["betas"]).dtype, np.number):
+            raise ValueError(f"{path}: key 'betas' must hold the body's shape coefficients (numbers), got "
+                             f"{np.asarray(data['betas']).dtype}; remove the key or write the numbers")
         betas = np.asarray(data["betas"], dtype=np.float64).reshape(-1)
         shape = torch.from_numpy(betas).float()
         meta["num_betas"] = int(betas.shape[0])
