@@ -41,7 +41,7 @@ class NoPrior(MotionEncoder, PriorAdapter):
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         super().__init__(size=size, weights=weights, device=device)
         if weights is not None:
-            raise ValueError(f"no-prior has no weights; got weights={weights!r} (drop the --weights no-prior=... option)")
+            raise ValueError(f"no-prior has no weights; got weights={weights!r} (drop its --weights option)")
         if size not in ("embedded", "paper"):
             raise ValueError(f"no-prior: unknown size {size!r}; expected 'embedded' or 'paper' (both are the same)")
 

@@ -38,7 +38,7 @@ class SlerpBaseline(InterpolationBaseline, Trainable, NoPrior):
 
     def __init__(self, size: str = "embedded", weights: str | None = None, device: str | torch.device = "cpu"):
         if weights is not None:
-            raise ValueError(f"slerp has no weights; got weights={weights!r} (drop the --weights slerp=... option)")
+            raise ValueError(f"slerp has no weights; got weights={weights!r} (drop its --weights option)")
         super().__init__(size=size, weights=None, device=device)
 
     def encode_motion(self, rotations: torch.Tensor, trans: torch.Tensor, timestamps: torch.Tensor) -> dict[str, torch.Tensor]:

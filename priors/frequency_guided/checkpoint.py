@@ -24,8 +24,9 @@ DDP_PREFIX = "module."
 WHERE_TO_GET = (
     "the motion prior pretrained_priorD.pth (+ motion_prior_config.ini) is public on Google Drive, file id "
     "12LAlvHJ34qNkOqCVawSDjBquQH6MI2Ma (linked from JchenXu/human-motion-prior, action_recognition/README.md); "
-    f"{VPOSER_V1_WHERE}. Pass both, e.g. `--weights frequency-guided=/path/folder` (a folder holding "
-    f"{OFFICIAL_PRIOR_NAME} and {OFFICIAL_VPOSER_NAME}) or `--weights frequency-guided=/p/{OFFICIAL_PRIOR_NAME},/p/{OFFICIAL_VPOSER_NAME}`"
+    f"{VPOSER_V1_WHERE}. Pass both, e.g. `--weights /path/folder` (a folder holding "
+    f"{OFFICIAL_PRIOR_NAME} and {OFFICIAL_VPOSER_NAME}) or `--weights /p/{OFFICIAL_PRIOR_NAME},/p/{OFFICIAL_VPOSER_NAME}` "
+    "(prefixed `frequency-guided=` for run, fit-check and encoder-check, which take several priors)"
 )
 TRAIN_COMMAND = "python -m benchmark train frequency-guided  (or: python -m priors.frequency_guided.train --out priors/weights)"
 

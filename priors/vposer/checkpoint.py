@@ -22,7 +22,8 @@ OFFICIAL_PREFIX = "vp_model."
 WHERE_TO_GET = (
     "VPoser V02_05 is distributed (registration required) as V02_05.zip on the SMPL-X download page "
     "https://smpl-x.is.tue.mpg.de/download.php; unzip it and pass the folder (or its "
-    "snapshots/*.ckpt file), e.g. `--weights vposer-slerp=/path/V02_05`"
+    "snapshots/*.ckpt file), e.g. `--weights /path/V02_05` (`--weights vposer-slerp=/path/V02_05` for run, fit-check and encoder-check, which "
+    "take several priors)"
 )
 
 
