@@ -275,6 +275,9 @@ class PriorAdapter(torch.nn.Module, metaclass=abc.ABCMeta):
         if path is None:
             raise ValueError(f"prior {cls.name!r} declares no default_weights: pass the weights file")
         if not path.exists():
+            if weights is not None:  # a path the user gave: most likely mistyped
+                raise FileNotFoundError(f"{cls.name} weights {path}: no such file; check the path given with --weights "
+                                        f"(or leave --weights out for the embedded weights)")
             raise FileNotFoundError(f"embedded {cls.name} weights not found: {path}. Train them with "
                                     f"`python -m benchmark train {cls.name}`" + (f", {otherwise}" if otherwise else ""))
         return path

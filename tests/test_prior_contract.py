@@ -209,3 +209,14 @@ def test_no_hook_of_a_prior_is_probed_in_the_harness_or_the_priors():
                 if probe.search(line) or dynamic.search(line) or by_identity.search(line):
                     found.append(f"{f.relative_to(ROOT)}:{i}: {line.strip()}")
     assert not found, "probes of a prior's hooks:\n" + "\n".join(found)
+
+
+def test_a_mistyped_weights_path_is_named_as_the_users_not_as_missing_training(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"structured-latent weights .*nope\.pt: no such file; check the path given with --weights"):
+        make_adapter("structured-latent", weights=str(tmp_path / "nope.pt"))
+    from priors.hmvae.checkpoint import DEFAULT_WEIGHTS
+
+    lone = tmp_path / "hmvae.pt"
+    lone.write_bytes(Path(DEFAULT_WEIGHTS).read_bytes())
+    with pytest.raises(FileNotFoundError, match=r"hmvae-trajectory needs two files.*VAE\.pt,TRAJECTORY\.pt"):
+        make_adapter("hmvae-trajectory", weights=str(lone))

@@ -313,6 +313,11 @@ def resolve_embedded_files(path: str | Path, trajectory: bool) -> tuple[Path, Pa
         traj_file = Path(parts[1]).expanduser() if len(parts) > 1 else first.parent / TRAJECTORY_FILE
     needed = [vae_file] + ([traj_file] if trajectory else [])
     missing = [str(p) for p in needed if not p.is_file()]
+    if missing and vae_file.is_file() and len(parts) == 1 and not first.is_dir():
+        raise FileNotFoundError(
+            f"{first}: hmvae-trajectory needs two files, the VAE and the trajectory model, and "
+            f"{traj_file} is not beside it; pass `VAE.pt,TRAJECTORY.pt` or a folder holding {VAE_FILE} and "
+            f"{TRAJECTORY_FILE}")
     if missing:
         raise FileNotFoundError(
             f"embedded HM-VAE weights not found: {missing}. Train them with `{TRAIN_COMMAND}` "
