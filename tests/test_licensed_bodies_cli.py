@@ -97,3 +97,13 @@ def test_missing_model_lists_every_path_tried(tmp_path, monkeypatch, capsys):
             assert str(tried) in err
         assert "<root>/smplh/neutral/model.npz" in err and "smpl-x.is.tue.mpg.de" in err
     assert not (tmp_path / "out" / "units").exists() and not (tmp_path / "o.npz").exists()
+
+
+def test_data_convert_says_when_the_shape_does_not_fit_the_body(tmp_path, capsys):
+    """SMPL-H betas converted for the Anny body are not Anny's shape: the file stores none, and the
+    message says so (it claimed a shape for the body)."""
+    src = amass_file(tmp_path / "seq_poses.npz", seconds=1.0, betas=16)
+    out = tmp_path / "seq.npz"
+    assert main(["data", "convert", str(src), "--out", str(out), "--body", "anny"]) == 0
+    assert "no shape stored (the input's shape is not body anny's" in capsys.readouterr().out
+    assert Motion.load(out).shape is None

@@ -15,8 +15,12 @@ def _cmd_data_convert(args) -> int:
 
         body = get_body(args.body)
     motion = convert(args.input, args.out, fps=args.fps, overwrite=args.force, body=body)
-    print(f"wrote {args.out}: {motion.num_frames} frames, {motion.duration:.2f} s, {motion.fps:.1f} fps ({motion.source})"
-          + (f", shape for body {body.name} ({body.shape_dim} parameters)" if body is not None else ""))
+    shape = ""
+    if body is not None:
+        shape = (f", shape for body {body.name} ({body.shape_dim} parameters)" if motion.shape is not None else
+                 f", no shape stored (the input's shape is not body {body.name}'s: its neutral shape will be used)")
+    print(f"wrote {args.out}: {motion.num_frames} frames, {motion.duration:.2f} s, {motion.fps:.1f} fps"
+          + (f" ({motion.source})" if motion.source else "") + shape)
     return 0
 
 
