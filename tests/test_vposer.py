@@ -5,6 +5,7 @@ import os
 import pickle
 import sys
 import types
+from pathlib import Path
 
 import pytest
 import roma
@@ -334,3 +335,22 @@ def test_tiny_training_run_decreases_the_loss_and_writes_outputs(tmp_path, monke
     model3, _ = train_vposer(None, steps=20, seed=0, hidden=64, latent=8, batch_size=128, poses=poses[:1000])
     for (k, v2), v3 in zip(model2.state_dict().items(), model3.state_dict().values()):
         assert torch.equal(v2, v3), k
+
+
+def test_wrong_embedded_files_are_named_for_what_they_are(tmp_path):
+    """Another prior's checkpoint, a config that is not numbers, an empty folder: each says what it
+    is and what to give instead (they said to retrain with a Python function, or called an empty
+    folder the official release)."""
+    from priors.vposer import checkpoint
+
+    root = Path(checkpoint.DEFAULT_WEIGHTS).parent
+    with pytest.raises(ValueError, match=r"hmvae\.pt: not a VPoser checkpoint of this project .*another prior's weights"):
+        checkpoint.load(root / "hmvae.pt", "embedded")
+    ckpt = torch.load(checkpoint.DEFAULT_WEIGHTS, weights_only=True)
+    ckpt["config"]["hidden"] = "abc"
+    torch.save(ckpt, tmp_path / "vposer.pt")
+    with pytest.raises(ValueError, match=r"'hidden' and 'latent' as positive integers, got hidden='abc'"):
+        checkpoint.load(tmp_path / "vposer.pt", "embedded")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match=r"empty: a folder with no VPoser checkpoint in it"):
+        checkpoint.load(tmp_path / "empty", "embedded")

@@ -115,9 +115,19 @@ def _load_state(ckpt: object, file: Path, model: VPoser) -> tuple[list[str], lis
 def _project_config(ckpt: object, file: Path) -> dict:
     """The ``config`` entry ({"hidden", "latent"}) of a project checkpoint (priors/weights/vposer.pt)."""
     cfg = ckpt.get("config") if isinstance(ckpt, dict) else None
+    fix = "give priors/weights/vposer.pt or a file written by `python -m benchmark train vposer-slerp`"
     if not isinstance(cfg, dict) or not {"hidden", "latent"} <= set(cfg):
-        raise ValueError(f"{file}: field 'config' with 'hidden' and 'latent' is missing; retrain with priors.vposer.train.train_vposer")
-    return {"hidden": int(cfg["hidden"]), "latent": int(cfg["latent"])}
+        held = f"its 'config' holds {sorted(cfg)[:8]}" if isinstance(cfg, dict) else "it has no 'config'"
+        raise ValueError(f"{file}: not a VPoser checkpoint of this project ({held}; a VPoser file's names hidden and "
+                         f"latent): another prior's weights? {fix}")
+    try:
+        out = {"hidden": int(cfg["hidden"]), "latent": int(cfg["latent"])}
+    except (TypeError, ValueError):
+        out = None
+    if out is None or min(out.values()) < 1:
+        raise ValueError(f"{file}: field 'config' must give 'hidden' and 'latent' as positive integers, got "
+                         f"hidden={cfg['hidden']!r}, latent={cfg['latent']!r}; {fix}")
+    return out
 
 
 def load(path: str | Path, size: str = "embedded") -> tuple[VPoser, CheckpointReport]:
@@ -130,10 +140,14 @@ def load(path: str | Path, size: str = "embedded") -> tuple[VPoser, CheckpointRe
     """
     check_size("vposer-slerp", size)
     if size == "embedded":
-        if Path(path).is_dir() or Path(path).suffix == ".ckpt":
+        p = Path(path).expanduser()
+        if p.is_dir() and not (any((p / "snapshots").glob("*.ckpt")) or any(p.glob("*.ckpt"))):
+            raise FileNotFoundError(f"{path}: a folder with no VPoser checkpoint in it; give the project's file "
+                                    "(priors/weights/vposer.pt) or, with --size paper, the official V02_05 folder")
+        if p.is_dir() or p.suffix == ".ckpt":
             raise ValueError(
                 f"{path} looks like the official VPoser release (a V02_05 folder or a .ckpt): load it with "
-                "size='paper'; size 'embedded' reads priors/weights/vposer.pt"
+                "--size paper (size='paper'); the embedded size reads priors/weights/vposer.pt"
             )
         file, why = resolve_checkpoint(path)
         ckpt = torch_load_weights(file, "retrain with `python -m benchmark train vposer-slerp`")
