@@ -385,3 +385,10 @@ def test_an_empty_profile_is_unknown_not_the_default(tmp_path, monkeypatch, caps
     _no_work(monkeypatch)
     assert main(["run", "table1", "--prior", "no-prior", "--profile", "", "--out", str(tmp_path / "o")]) == 2
     assert "unknown profile ''" in capsys.readouterr().err
+
+
+def test_a_prior_named_twice_is_refused_before_work(tmp_path, monkeypatch, capsys):
+    _no_work(monkeypatch)
+    argv = ["run", "table1", "--prior", "no-prior", "--prior", "no-prior", "--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    assert "--prior no-prior given twice" in capsys.readouterr().err

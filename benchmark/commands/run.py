@@ -75,6 +75,9 @@ def _cmd_run(args) -> int:
     out = check_out_dir(args.out)  # cheap, and the costliest mistake to find late: first
     _check_table_files(out, spec["name"])
     priors = args.prior or default_priors(spec)
+    twice = sorted({p for p in priors if priors.count(p) > 1})
+    if twice:
+        raise ValueError(f"--prior {', '.join(twice)} given twice; name each prior once")
     for name in priors:
         get_prior_class(name)
     weights = parse_pairs(args.weights, "--weights")
