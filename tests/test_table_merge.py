@@ -121,6 +121,10 @@ def test_cells_are_matched_by_their_coordinates_never_by_position():
     for bad in ({"cells": []}, {"prior": "hmvae"}, "x"):
         with pytest.raises(ValueError, match=r"NEW.json: row 0 is not a table row"):
             replace_rows(base, {**new, "rows": [bad]}, source="NEW.json")
+    text = copy.deepcopy(new)
+    text["rows"][0]["cells"][0]["mpjpe_mm"] = "12"
+    with pytest.raises(ValueError, match=r"NEW.json: row 'hmvae', cell .*: mpjpe_mm is '12', not a finite number"):
+        replace_rows(base, text, source="NEW.json")
     with pytest.raises(ValueError, match=r"NEW.json: holds no row"):
         replace_rows(base, {**new, "rows": []}, source="NEW.json")
 

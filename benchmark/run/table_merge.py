@@ -119,10 +119,16 @@ def _cells_by_coordinates(table: Mapping, source: str, like: Mapping | None = No
     if not axes or sorted(map(repr, order)) != sorted(map(repr, grid)):
         raise ValueError(f"{source}: the cells of its first row are not the grid {ref.get('grid')!r}, "
                          "cell for cell; give a table JSON written by `python -m benchmark run`")
+    names = [m.get("name") for m in table.get("metrics") or [] if isinstance(m, Mapping)]
     for row in rows:
         by = {}
         for cell in row["cells"]:
             key = tuple(cell.get(k) for k in axes)
+            for name in names:
+                v = cell.get(name)
+                if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)):
+                    raise ValueError(f"{source}: row {row['prior']!r}, cell {dict(zip(axes, key))}: {name} is {v!r:.40}, "
+                                     "not a finite number; give a table JSON written by `python -m benchmark run`")
             if key in by:
                 raise ValueError(f"{source}: row {row['prior']!r} holds the cell {dict(zip(axes, key))} twice")
             by[key] = cell
