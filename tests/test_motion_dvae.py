@@ -310,7 +310,7 @@ def test_project_checkpoint_round_trip_and_refusals(trained, tmp_path):
     training.save_checkpoint(tmp_path / "bad.pt", sd, model.config)
     with pytest.raises(KeyError, match="decoder.net.0.weight"):
         MotionDVAEPrior(size="embedded", weights=str(tmp_path / "bad.pt"))
-    with pytest.raises(FileNotFoundError, match="python -m benchmark train motion-dvae"):
+    with pytest.raises(FileNotFoundError, match="no such file; check the path given with --weights"):
         MotionDVAEPrior(size="embedded", weights=str(tmp_path / "missing.pt"))
     with pytest.raises(FileExistsError, match="--force"):
         MotionDVAEPrior.train_embedded(out_dir=tmp_path)

@@ -220,3 +220,11 @@ def test_a_mistyped_weights_path_is_named_as_the_users_not_as_missing_training(t
     lone.write_bytes(Path(DEFAULT_WEIGHTS).read_bytes())
     with pytest.raises(FileNotFoundError, match=r"hmvae-trajectory needs two files.*VAE\.pt,TRAJECTORY\.pt"):
         make_adapter("hmvae-trajectory", weights=str(lone))
+
+
+def test_missing_default_weights_say_how_to_train_them(tmp_path, monkeypatch):
+    from priors.structured_latent.adapter import StructuredLatentPrior
+
+    monkeypatch.setattr(StructuredLatentPrior, "default_weights", tmp_path / "structured_latent.pt")
+    with pytest.raises(FileNotFoundError, match=r"embedded structured-latent weights not found: .*python -m benchmark train structured-latent"):
+        StructuredLatentPrior()

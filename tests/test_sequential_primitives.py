@@ -238,7 +238,7 @@ def test_official_weights_errors(tmp_path, tiny_weights):
         SequentialPrimitivesPrior(size="paper", weights=str(bogus))
     with pytest.raises(ValueError, match="not a paper-size checkpoint"):
         SequentialPrimitivesPrior(size="paper", weights=str(tiny_weights[0]))
-    with pytest.raises(FileNotFoundError, match="train sequential-primitives"):
+    with pytest.raises(FileNotFoundError, match="no such file; check the path given with --weights"):
         SequentialPrimitivesPrior(size="embedded", weights=str(tmp_path / "missing.pt"))
     ckpt = torch.load(tiny_weights[0], weights_only=True)
     del ckpt["state_dict"]["decoder.in_t.weight"]

@@ -274,7 +274,7 @@ def test_official_weights_and_missing_embedded_weights_errors(tmp_path):
         StructuredLatentPrior(size="paper", weights=str(tmp_path / "official.pt"))
     with pytest.raises(ValueError, match="no loader for official weights"):
         StructuredLatentPrior(size="paper")
-    with pytest.raises(FileNotFoundError, match="benchmark train structured-latent"):
+    with pytest.raises(FileNotFoundError, match="no such file; check the path given with --weights"):
         StructuredLatentPrior(weights=str(tmp_path / "nope.pt"))
     with pytest.raises(ValueError, match="unknown size"):
         StructuredLatentPrior(size="huge")
