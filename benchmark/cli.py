@@ -66,6 +66,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     debug = bool(args.verbose or args.debug)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if args.debug:  # a failed work unit's traceback (benchmark.run.runner logs it at DEBUG level only)
+        logging.getLogger("benchmark.run.runner").setLevel(logging.DEBUG)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else 2

@@ -278,8 +278,10 @@ class PriorAdapter(torch.nn.Module, metaclass=abc.ABCMeta):
             if weights is not None:  # a path the user gave: most likely mistyped
                 raise FileNotFoundError(f"{cls.name} weights {path}: no such file; check the path given with --weights "
                                         f"(or leave --weights out for the embedded weights)")
-            raise FileNotFoundError(f"embedded {cls.name} weights not found: {path}. Train them with "
-                                    f"`python -m benchmark train {cls.name}`" + (f", {otherwise}" if otherwise else ""))
+            how = (f"Train them with `python -m benchmark train {cls.name}`" if issubclass(cls, Trainable) else
+                   "Put the prior's weights file there, or pass one with --weights")
+            raise FileNotFoundError(f"embedded {cls.name} weights not found: {path}. {how}"
+                                    + (f", {otherwise}" if otherwise else ""))
         return path
 
     @property

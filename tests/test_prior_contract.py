@@ -228,3 +228,35 @@ def test_missing_default_weights_say_how_to_train_them(tmp_path, monkeypatch):
     monkeypatch.setattr(StructuredLatentPrior, "default_weights", tmp_path / "structured_latent.pt")
     with pytest.raises(FileNotFoundError, match=r"embedded structured-latent weights not found: .*python -m benchmark train structured-latent"):
         StructuredLatentPrior()
+
+
+def test_a_registered_object_that_is_not_a_usable_adapter_is_named_with_its_entry_point():
+    from benchmark.run import registry as reg
+    from priors.vposer.adapter import VPoserSlerp
+
+    class NoTerm(PriorAdapter):  # prior_term left out
+        name = "no-term"
+
+        def init_latents(self, batch, generator):
+            return {}
+
+        def decode(self, latents, timestamps, shape=None):
+            raise NotImplementedError
+
+    class NoKwargs(VPoserSlerp):
+        def __init__(self):
+            super().__init__()
+
+    def helper(**kw):
+        return None
+
+    cases = ((NoTerm, r"NoTerm does not implement prior_term"),
+             (helper, r"names <function .*helper.*>, not a subclass of priors.base.PriorAdapter"),
+             (NoKwargs, r"NoKwargs\(size=..., weights=..., device=...\) failed .*takes those three keyword arguments"))
+    for target, message in cases:
+        reg.register("audit-case", target)
+        try:
+            with pytest.raises(ValueError, match=rf"prior 'audit-case' \(.*\).*{message}"):
+                make_adapter("audit-case")
+        finally:
+            reg.unregister("audit-case")

@@ -30,6 +30,7 @@ import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
+from benchmark.protocols.latent_checks import prior_values
 from benchmark.protocols.facing import FACING_RULES, facing_search, observed_facing
 from benchmark.protocols.fit_state import (FitState, batch_rows, body_parameters, init_state, parameter_groups,
                                            repeat_batch, row_frames, rows_independent, state_rows)
@@ -143,7 +144,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         verts = body.skin(rest, rot, trans, vertex_indices=subset).vertices  # (R, n, V, 3)
         data = chamfer(verts.flatten(0, 1), b_sample=points_per_step, generator=sampler).view(bt.batch_size, n)
         data = data.mean(1) * 1000.0
-        prior = adapter.prior_term(st.latents)
+        prior = prior_values(adapter, st.latents)
         value = data + lambda_prior * prior
         if record:
             trace.append(data.detach())

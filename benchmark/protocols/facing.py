@@ -12,6 +12,7 @@ import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
+from benchmark.protocols.latent_checks import prior_values
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, init_state,
                                              repeat_batch, rigid_parameters, set_yaw, subset_batch, subset_data_term)
 from benchmark.protocols.multi_start import select_copies
@@ -61,7 +62,7 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
 
     def loss_of(step):
         data = subset_data_term(hyp, body, small, subset, chamfer)
-        prior = adapter.prior_term(hyp.latents)
+        prior = prior_values(adapter, hyp.latents)
         return (data + lambda_prior * prior).sum(), lambda: {}
 
     rigid_steps, all_steps = FACING_STEPS

@@ -111,6 +111,9 @@ def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
         )
     if dec.trans is not None and dec.trans.shape != (B, T, 3):
         raise ValueError(f"prior {adapter.name!r}: decode returned trans {tuple(dec.trans.shape)}, expected {(B, T, 3)}")
+    if not bool(torch.isfinite(dec.rotations).all()) or (dec.trans is not None and not bool(torch.isfinite(dec.trans).all())):
+        raise ValueError(f"prior {adapter.name!r}: decode returned NaN or inf rotations or translations (from latents "
+                         "it was given or fitted to: check its decoder on them, e.g. python -m benchmark check-prior)")
 
 
 LATENT_INITS = ("sample", "mean")  # objective.latent_init (initial_latents)
@@ -125,7 +128,14 @@ def initial_latents(adapter: PriorAdapter, batch: FitBatch, generator: torch.Gen
     if latent_init not in LATENT_INITS:
         raise ValueError(f"latent_init {latent_init!r}: choose one of {', '.join(LATENT_INITS)}")
     latents = adapter.mean_latents(batch) if latent_init == "mean" else None
-    return adapter.init_latents(batch, generator) if latents is None else latents
+    if latents is None:
+        return adapter.init_latents(batch, generator)
+    from benchmark.protocols.latent_checks import check_latents
+
+    # init_latents' layout, drawn from a generator of its own (the fit's stream is not touched)
+    layout = adapter.init_latents(batch, torch.Generator(device=generator.device).manual_seed(0))
+    check_latents(adapter, latents, layout, "mean_latents")
+    return latents
 
 
 def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device,

@@ -47,6 +47,7 @@ import roma
 import torch
 
 from benchmark.core.motion_posing import body_float
+from benchmark.protocols.latent_checks import prior_values
 from benchmark.protocols.fit_state import FitState, body_parameters, init_state, set_rigid
 from benchmark.protocols.step_rules import optimise
 from benchmark.core.skeleton import NUM_JOINTS
@@ -319,7 +320,7 @@ def fit_motion(adapter, body, targets: MotionTargets, steps: int, lr: float, lam
         def step_loss(step):
             rot, trans = body_parameters(state, targets.timestamps, observed=True)
             data = data_term(body, rest, rot, trans, targets, rotation_weight_mm2)
-            prior = adapter.prior_term(state.latents)
+            prior = prior_values(adapter, state.latents)
             return (data + lambda_prior * prior).sum(), lambda: {"data_mm2": float(data.detach().mean()),
                                                                   "prior": float(prior.detach().mean())}
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
+from benchmark.protocols.latent_checks import prior_values
 from benchmark.protocols.facing import facing_search
 from benchmark.protocols.fit_state import (FitState, apply_free_rigid, body_parameters, init_state, parameter_groups,
                                            row_frames, rows_independent, state_rows)
@@ -215,7 +216,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
             terms["dense"] = chamfer(v.flatten(0, 1)).view(verts.shape[0], n).mean(1) * DENSE_SCALE
         if "time" in terms_used:
             terms["time"] = (tau_hat.double() - pick(obs_t)).square().mean(1).to(verts.dtype) * TIME_SCALE
-        return [terms[k] for k in terms_used], adapter.prior_term(st.latents)
+        return [terms[k] for k in terms_used], prior_values(adapter, st.latents)
 
     def record(values, prior):
         trace.append(sum(v.detach() for v in values))

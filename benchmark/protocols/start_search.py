@@ -17,6 +17,7 @@ import roma
 import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
+from benchmark.protocols.latent_checks import check_latents, prior_values
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, decode_grid,
                                               frame_chamfer, init_state, repeat_batch, rigid_parameters, set_rigid,
                                               subset_batch)
@@ -78,6 +79,7 @@ def limb_hypotheses(adapter: PriorAdapter, state: FitState, stage: int) -> list[
                         v = torch.tensor(cfg.get(part, (0.0, 0.0, 0.0)), dtype=rot.dtype, device=rot.device)
                         r[:, :, j] = roma.rotvec_to_rotmat(v * mirror if flip else v)
                 enc = adapter.encode_motion(r, zero_trans, state.obs_t)
+                check_latents(adapter, enc, lat, "encode_motion", extra=True)
                 out.append({k: enc[k].detach().to(lat[k]) for k in lat})
     return out
 
@@ -128,7 +130,7 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
         return frame_chamfer(hyp, body, small, subset, chamfer) * 1000.0
 
     def loss_of(step):
-        return (frame_terms().mean(1) + lambda_prior * adapter.prior_term(hyp.latents)).sum(), lambda: {}
+        return (frame_terms().mean(1) + lambda_prior * prior_values(adapter, hyp.latents)).sum(), lambda: {}
 
     rigid_steps, all_steps = START_SEARCH_STEPS
     optimise(adapter.name, rigid_parameters(hyp), rigid_steps, lr, 1.0, loss_of)
@@ -264,6 +266,7 @@ def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState,
     def encoded_on(t):
         rot, trans = body_parameters(ref, t)
         enc = adapter.encode_motion(rot, trans, t)
+        check_latents(adapter, enc, state.latents, "encode_motion", partial=True, shapes=False, extra=True)  # shapes: below
         return {k: enc.get(k, v).detach().to(v) for k, v in state.latents.items()}
 
     def mismatch(enc):

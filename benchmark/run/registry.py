@@ -100,6 +100,27 @@ def check_weights_option(weights: dict, priors, verb: str = "being run") -> None
             raise FileNotFoundError(f"--weights {name}={path}: no such file or folder")
 
 
+def _where(name: str) -> str:
+    entry = registry().get(name)
+    return f"{entry.target}, from {entry.origin}" if entry is not None else "registered at run time"
+
+
+def _check_prior_class(name: str, cls) -> None:
+    """ValueError naming the entry point unless ``cls`` is a concrete PriorAdapter subclass."""
+    import inspect
+
+    from priors.base import PriorAdapter
+
+    if not (isinstance(cls, type) and issubclass(cls, PriorAdapter)):
+        raise ValueError(f"prior {name!r} ({_where(name)}) names {cls!r}, not a subclass of priors.base.PriorAdapter; "
+                        "point the entry point at the adapter class (docs/adding-a-prior.md)")
+    if inspect.isabstract(cls):
+        missing = sorted(getattr(cls, "__abstractmethods__", ()))
+        raise ValueError(f"prior {name!r} ({_where(name)}): {cls.__name__} does not implement {', '.join(missing)} "
+                        "(abstract in priors.base.PriorAdapter or an interface it declares); implement them "
+                        "(docs/adding-a-prior.md)")
+
+
 def make_adapter(name: str, size: str = "embedded", weights: str | None = None, device: str = "cpu"):
     """Construct the registered prior ``name`` (``size``: "embedded" or "paper"; ``weights``: a
     checkpoint path or None for the embedded weights), moved to ``device`` and in eval mode.
@@ -108,9 +129,14 @@ def make_adapter(name: str, size: str = "embedded", weights: str | None = None, 
     :class:`WeightsFileError` naming the file and the fix, instead of torch's bare EOFError /
     UnpicklingError / RuntimeError."""
     cls = get_prior_class(name)
+    _check_prior_class(name, cls)
     try:
         adapter = cls(size=size, weights=weights, device=device)
     except _LOAD_ERRORS as exc:
+        if isinstance(exc, TypeError) and "__init__()" in str(exc) and "argument" in str(exc):
+            raise ValueError(f"prior {name!r} ({_where(name)}): {cls.__name__}(size=..., weights=..., device=...) "
+                             f"failed ({exc}); a prior's constructor takes those three keyword arguments and passes "
+                             "them to PriorAdapter.__init__ (docs/adding-a-prior.md)") from exc
         file, cause = None, exc
         while cause is not None and file is None:  # raw, or re-raised by the adapter ``from`` torch's error
             file = _torch_load_file(cause)

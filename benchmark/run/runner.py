@@ -291,7 +291,10 @@ def run_units(
                     error = exc
             if error is not None:
                 report.failed[unit.unit_id] = f"{type(error).__name__}: {error}"
-                log.error("unit %s failed: %s: %s", unit.unit_id, type(error).__name__, error, exc_info=error)
+                # one line; the traceback with --debug (or -v), which set this logger to DEBUG
+                trace = log.isEnabledFor(logging.DEBUG)
+                log.error("unit %s failed: %s: %s%s", unit.unit_id, type(error).__name__, error,
+                          "" if trace else " (--debug shows its traceback)", exc_info=error if trace else None)
             else:
                 done[unit.unit_id] = record
                 report.ran.append(unit.unit_id)

@@ -72,6 +72,7 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
     from benchmark.data.degrade import degrade
     from benchmark.protocols.completion import fit, observation_batch
     from benchmark.protocols.fit_state import body_parameters, init_state
+    from benchmark.protocols.latent_checks import check_latents, prior_values
     from priors.base import MotionEncoder, PriorAdapter, interfaces_of
 
     rep = _Report()
@@ -123,6 +124,30 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
 
         rep.check(f"{label}: init_latents shapes", latents)
 
+        def mean_latents():
+            mean = a.mean_latents(batch)
+            if mean is None:
+                return "none: init_latents is the start (deterministic)"
+            check_latents(a, mean, a.init_latents(batch, torch.Generator().manual_seed(0)), "mean_latents")
+            return "init_latents' keys and shapes"
+
+        rep.check(f"{label}: mean_latents", mean_latents)
+
+        if isinstance(a, MotionEncoder):
+            def encoder():
+                # what the table1 starts encode: a per-frame prior the motion at the observed frames
+                # (every latent, their shapes), a window prior the motion at the output frames
+                st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu")
+                per_frame = a.window.kind == "per-frame"
+                t = batch.timestamps if per_frame else batch.output_timestamps
+                with torch.no_grad():
+                    rot, tr = body_parameters(st, t, observed=per_frame)
+                    enc = a.encode_motion(rot, tr, t)
+                check_latents(a, enc, st.latents, "encode_motion", partial=not per_frame, shapes=per_frame, extra=True)
+                return ", ".join(f"{k} {tuple(v.shape)}" for k, v in enc.items())
+
+            rep.check(f"{label}: encode_motion keys", encoder)
+
         def decode_shapes():
             st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu")
             rot, tr = body_parameters(st, batch.output_timestamps)
@@ -150,7 +175,7 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
             if dead:
                 raise ValueError(f"the decoded motion does not depend on latents {dead}: no finite non-zero gradient "
                                  "of the data term reaches them (does decode() read them, without detaching?)")
-            prior = a.prior_term(st.latents).sum()
+            prior = prior_values(a, st.latents).sum()
             if not torch.isfinite(prior):
                 raise ValueError(f"prior term is {prior.item()}")
             return "the data term's gradient reaches every latent"
@@ -222,7 +247,7 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
             for v in st.latents.values():  # away from the start, where a prior term may be zero for any batch
                 v.add_(0.05)
             rot, tr = body_parameters(st, pair.output_timestamps)
-            prior = a.prior_term(st.latents)
+            prior = prior_values(a, st.latents)
             for i in range(2):
                 rows = torch.tensor([i])
                 try:
