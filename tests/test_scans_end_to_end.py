@@ -310,6 +310,19 @@ def test_complete_no_prior_recovers_the_generating_motion(tmp_path, anny_body):
     assert diag["truth"]["mpjpe_mm"] <= FITS_MPJPE_TARGET_MM
 
 
+def test_a_sparse_ground_truth_frame_is_an_error_naming_it_not_a_cut_of_every_frame(tmp_path):
+    """Every ground-truth frame of a unit is cut to one size: one frame of 3 points among frames of
+    400 cut them all to 3 (Chamfer 33 -> 187 mm on a real capture, with a log line). It is refused,
+    naming the sequence and the capture frame."""
+    g = np.random.default_rng(2)
+    clouds = [person(rng=g) for _ in range(40)]
+    clouds[5] = np.array([[0.0, 0.0, 0.0], [0.0, 1.7, 0.0], [0.1, 0.9, 0.0]])
+    seq = ScanSequence(write_folder(tmp_path / "sparse", clouds), check=False)
+    source = ScanCompletionData(table1_spec(window_s=0.7), None, {"sparse": seq}, seed=0)
+    with pytest.raises(ValueError, match=r"scans sparse: capture frame 5 \(t = 0\.100 s\) holds 3 points, under half"):
+        source.unit_data(["sparse"])
+
+
 def test_a_capture_slower_than_the_observed_rate_is_an_error_naming_the_folder(tmp_path):
     seq = ScanSequence(write_folder(tmp_path / "slow", [person() for _ in range(4)], fps=4.0))
     source = ScanCompletionData(table1_spec(window_s=0.8), None, {"slow": seq}, seed=0)

@@ -126,18 +126,25 @@ class ScanCompletionData:
         out_fps = float(self.spec["output_fps"])
         n_out = int(round(window * out_fps))
         rel = np.arange(n_out, dtype=np.float64) / out_fps
-        frames, extra = [], []
+        frames, extra, where = [], [], []
         for sid in sequence_ids:
             seq = self.motions[sid]
             _, t0 = self._window_start(seq)
             idx, off = seq.nearest_frames(t0 + rel)
             frames += [self._ground_truth_frame(sid, int(i), float(o)) for i, o in zip(idx, off)]
+            where += [(sid, int(i)) for i in idx]
             extra.append({"gt_time_offset_max_s": float(np.abs(off).max()), "capture_fps": seq.capture_fps})
-        count = min(f.shape[0] for f in frames)
-        median = float(np.median([f.shape[0] for f in frames]))
+        sizes = [f.shape[0] for f in frames]
+        count = min(sizes)
+        median = float(np.median(sizes))
         if count < 0.5 * median:
-            log.warning("scans %s: a ground-truth frame has %d points (median %d); every ground-truth frame of the "
-                        "unit is cut to %d points", sequence_ids, count, median, count)
+            # every ground-truth frame of the unit is cut to one size: a sparse frame would cut them all
+            sid, i = where[int(np.argmin(sizes))]
+            raise ValueError(f"scans {sid}: capture frame {i} (t = {float(self.motions[sid].timestamps[i]):.3f} s) holds "
+                             f"{count} points, under half the median ({median:.0f}) of the ground-truth frames it is "
+                             f"scored with; remove that frame from the capture (or export it again)")
+        if count < median:
+            log.info("scans %s: ground-truth frames cut to %d points (their median: %d)", sequence_ids, count, median)
         g = torch.Generator().manual_seed(stable_seed("gt-scan", self.seed, *sequence_ids))
         gt = torch.stack([torch.from_numpy(f)[torch.randperm(f.shape[0], generator=g)[:count]] for f in frames])
         gt = gt.view(len(sequence_ids), n_out, count, 3)
