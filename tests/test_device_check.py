@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from benchmark.cli import main
 from benchmark.tools import device_check
 
@@ -42,7 +44,7 @@ def test_failures_are_collected_and_the_rest_runs(tmp_path, monkeypatch, capsys)
     assert "mpjpe_mm" in ok["against_smoke_golden"]  # compared with results/inbetween.smoke.json
     md = (out / "device-check.md").read_text()
     assert "| denoise | no-prior | failed |" in md and "same device" in md and "peak GiB" in md
-    assert "2 of 4 pairs ran, 2 failed" in capsys.readouterr().out
+    assert "2 of 4 pairs ran without error, 2 failed;" in capsys.readouterr().out
 
 
 def test_budget_stops_new_pairs(tmp_path):
@@ -50,3 +52,15 @@ def test_budget_stops_new_pairs(tmp_path):
                                        tmp_path / "no-results", budget_s=-1.0, log=lambda *a: None)
     assert [p["status"] for p in report["pairs"]] == ["not run (budget spent)"] * 2
     assert not device_check.failed(report)
+
+
+def test_a_check_that_ran_nothing_does_not_pass(tmp_path, monkeypatch, capsys):
+    """Pairs not started for the budget are counted as not run, never as run; a check that ran none
+    exits 1, and a budget of 0 or less is refused by the parser."""
+    code = main(["device-check", "--device", "cpu", "--table", "inbetween", "--prior", "no-prior", "--prior", "slerp",
+                 "--budget", "1e-6", "--out", str(tmp_path / "dc")])  # spent while the body loads
+    captured = capsys.readouterr()
+    assert code == 1 and "0 of 2 pairs ran without error, 2 not run (--budget 1e-06 s spent)" in captured.out
+    assert "nothing was checked" in captured.err
+    with pytest.raises(SystemExit):
+        main(["device-check", "--device", "cpu", "--budget", "0", "--out", str(tmp_path / "dc2")])
