@@ -115,6 +115,18 @@ def test_a_second_make_scans_force_replaces_its_own_output(tmp_path, capsys):
     assert len(list((out / "synthetic:test:0001").glob("frame_*.ply"))) == 3
 
 
+def test_make_scans_force_keeps_a_users_file_inside_a_folder_it_wrote(tmp_path, capsys):
+    out = tmp_path / "s"
+    assert make_scans(out, "synthetic:test:0000") == 0
+    notes = out / "synthetic:test:0000" / "annotations.json"
+    notes.write_text('{"label": "walk"}')
+    assert make_scans(out, "synthetic:test:0000", force=True) == 2
+    assert "synthetic:test:0000/annotations.json" in capsys.readouterr().err
+    assert notes.read_text() == '{"label": "walk"}'
+    notes.unlink()
+    assert make_scans(out, "synthetic:test:0000", force=True) == 0  # its own files only: replaced
+
+
 # -- complete: never into its input ------------------------------------------------------------------
 def test_complete_into_the_capture_folder_is_refused_and_the_capture_unchanged(scan_set, capsys, monkeypatch):
     def started(*a, **k):
@@ -154,6 +166,15 @@ def test_complete_force_replaces_only_its_own_output(tmp_path, capsys, monkeypat
     with pytest.raises(OutDirError, match=r"did not write \(thesis.tex\)"):
         check_complete_args(Args)
     assert sorted(p.name for p in out.iterdir()) == sorted([MARKER_NAME, "motion.npz", "thesis.tex"])
+    # inside a folder of its own (meshes/), only the files it recorded writing there
+    (out / "thesis.tex").unlink()
+    (out / "meshes").mkdir()
+    (out / "meshes" / "mesh_0000.obj").write_text("v 0 0 0")
+    write_marker(out, "complete", OUTPUT_ENTRIES, files=True)
+    assert check_complete_args(Args) == (out, ["meshes", "motion.npz"])
+    (out / "meshes" / "notes.txt").write_text("mine")
+    with pytest.raises(OutDirError, match=r"did not write \(meshes/notes.txt\)"):
+        check_complete_args(Args)
 
 
 # -- every command that writes: a bad --out first --------------------------------------------------------

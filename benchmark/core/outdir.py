@@ -264,6 +264,11 @@ def claim_out_dir(out: str | os.PathLike, command: str, force: bool, what: str =
                           "empty the folder yourself")
     owned = {str(e) for e in marker["entries"]}
     foreign = [n for n in had if n not in owned and n not in (MARKER_NAME, LOCK_NAME)]
+    recorded = marker.get("files") if isinstance(marker.get("files"), dict) else {}
+    for name in had:  # inside a folder of its own, the files it recorded writing and nothing else
+        if name in owned and isinstance(recorded.get(name), list) and (path / name).is_dir():
+            mine = {str(f) for f in recorded[name]}
+            foreign += [f for f in _files_under(path, name) if f not in mine]
     if foreign:
         more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
         raise OutDirError(f"{what} {path}: holds files {shown} did not write ({', '.join(foreign[:3])}{more}); "
@@ -275,9 +280,16 @@ def _plain_name(name: str) -> bool:
     return bool(name) and name not in (".", "..") and "/" not in name and "\\" not in name and name != MARKER_NAME
 
 
-def write_marker(folder: str | os.PathLike, command: str, entries) -> Path:
+def _files_under(folder: Path, name: str) -> list[str]:
+    """The files below ``folder / name``, as paths relative to ``folder`` (posix)."""
+    return sorted(p.relative_to(folder).as_posix() for p in (folder / name).rglob("*") if not p.is_dir())
+
+
+def write_marker(folder: str | os.PathLike, command: str, entries, files: bool = False) -> Path:
     """Record in ``folder`` that ``command`` wrote it and which top-level ``entries`` are its own
-    (written atomically; entries it adds later are recorded by calling this again)."""
+    (written atomically; entries it adds later are recorded by calling this again). ``files``: also
+    record the files now inside each entry that is a folder (call it so once the command has
+    written them): a later ``--force`` then refuses a folder of its own holding anything else."""
     folder = Path(folder)
     names = sorted({str(e) for e in entries})
     bad = [n for n in names if not _plain_name(n)]
@@ -285,6 +297,8 @@ def write_marker(folder: str | os.PathLike, command: str, entries) -> Path:
         raise ValueError(f"marker entries must be plain names in the folder, got {bad}")
     data = {"command": command, "entries": names,
             "note": f"written by python -m benchmark {command}; --force replaces only these entries"}
+    if files:
+        data["files"] = {n: _files_under(folder, n) for n in names if (folder / n).is_dir()}
     tmp = folder / f".{MARKER_NAME}.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
     os.replace(tmp, _marker_path(folder))

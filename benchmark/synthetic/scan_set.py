@@ -166,4 +166,5 @@ def make_scan_set(out: str | Path, sequences=4, fps: float = 60.0, points: int =
         truth.save(folder / "ground_truth" / "motion.npz")
         written.append(folder)
         log.info("wrote %s: %d frames", folder, scans.num_frames)
+    write_marker(out, COMMAND, names, files=True)  # its files too: a later --force replaces only them
     return written

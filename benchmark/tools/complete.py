@@ -274,5 +274,6 @@ def run_complete(args) -> dict:
     diag["preview"] = message
     diag["wall_s"] = time.perf_counter() - t_begin
     (out / "diagnostics.json").write_text(json.dumps(diag, indent=2))
+    write_marker(out, COMMAND, OUTPUT_ENTRIES, files=True)  # the meshes it wrote: a later --force replaces only them
     print(f"done in {diag['wall_s']:.1f} s (fit {fit_s:.1f} s); diagnostics: {out / 'diagnostics.json'}")
     return diag
