@@ -69,6 +69,11 @@ def test_mismatched_or_unordered_timestamps_are_errors_naming_the_file(tmp_path)
         ScanSequence(write_folder(tmp_path / "a", clouds, timestamps=[0.0, 0.02]))
     with pytest.raises(ValueError, match=r"timestamps\.txt: timestamps must be finite and strictly increasing.*frame_0002"):
         ScanSequence(write_folder(tmp_path / "b", clouds, timestamps=[0.0, 0.02, 0.01]))
+    c = write_folder(tmp_path / "c", clouds)
+    (c / "timestamps.txt").unlink()
+    np.save(c / "timestamps.npy", np.array(["0.00s", "0.02s", "0.04s"]))
+    with pytest.raises(ValueError, match=r"timestamps\.npy: unreadable timestamps \(could not convert string to float"):
+        ScanSequence(c)
 
 
 def test_gap_in_timestamps_is_a_warning_naming_the_file(tmp_path, caplog):

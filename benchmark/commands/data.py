@@ -75,7 +75,8 @@ def add_command(sub) -> None:
     m.add_argument("--sequences", type=at.positive_int, default=4, help="how many test sequences (the profiles' selection)")
     m.add_argument("--ids", nargs="+", default=None, help="explicit test sequence ids instead of --sequences")
     m.add_argument("--fps", type=at.fps, default=60.0, help="capture rate")
-    m.add_argument("--points", type=at.points, default=10000, help="points per frame (after the holes)")
+    m.add_argument("--points", type=at.Number(int, 3, at.MAX_POINTS), default=10000,
+                   help="points per frame (after the holes); a scan frame needs at least 3")
     m.add_argument("--noise-mm", type=at.Number(float, 0.0, 1000.0, unit="mm"), default=3.0, help="Gaussian noise per axis, mm")
     m.add_argument("--holes", type=at.fraction, default=0.1, help="fraction of each frame's surface cut away")
     m.add_argument("--duration", type=at.positive_float, default=4.0,

@@ -166,9 +166,10 @@ def read_timestamps(folder: str | Path) -> tuple[np.ndarray, Path] | None:
             values = np.load(path, allow_pickle=False)
         else:
             values = np.loadtxt(path, dtype=np.float64, comments="#", ndmin=1)
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
     except Exception as exc:
         raise ValueError(f"{path}: unreadable timestamps ({exc}); write one time in seconds per frame") from exc
-    return np.asarray(values, dtype=np.float64).reshape(-1), path
+    return values, path
 
 
 def load_scan_folder(
