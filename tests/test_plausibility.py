@@ -234,7 +234,25 @@ def test_scan_warnings_are_logged_once_per_sequence(tmp_path, caplog):
         seq = ScanSequence(lying)
         seq.read_frames([0, 1, 2])  # validated: reading does not repeat the warnings
     warnings = plausibility_warnings(caplog)
-    assert len(warnings) == 1 and "is the capture z-up?" in warnings[0] and "9 more frame(s)" in warnings[0]
+    assert len(warnings) == 1 and "is the capture z-up?" in warnings[0] and "warnings on 10 frame(s)" in warnings[0]
+
+
+def test_each_kind_of_scan_warning_is_shown_once(tmp_path, caplog):
+    """A 500 m outlier makes one frame both too wide and too far: both warnings are shown (only the
+    first was, and it pointed to the up axis), and the frames are counted, not the messages."""
+    from benchmark.loaders.scans import ScanSequence
+
+    def frame(i):
+        pts = person(seed=i)
+        if i == 5:
+            pts[0] = [0.0, 0.0, 500.0]
+        return pts
+
+    with caplog.at_level(logging.WARNING):
+        ScanSequence(write_scan_folder(tmp_path / "outlier", frames=frame))
+    warnings = plausibility_warnings(caplog)
+    assert len(warnings) == 2 and all("frame_0005" in w for w in warnings), warnings
+    assert not any("frame(s)" in w for w in warnings)  # one frame: no count
 
 
 def test_missing_timestamps_name_a_fix_for_the_command_in_use(tmp_path):

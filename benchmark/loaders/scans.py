@@ -370,9 +370,14 @@ class ScanSequence:
         warnings: list[str] = []
         for i in range(len(self.frames)):
             self._read_frame(i, warnings)
-        if warnings:
-            more = f" (and warnings on {len(warnings) - 1} more frame(s) of {self.folder})" if len(warnings) > 1 else ""
-            log.warning("%s%s", warnings[0], more)
+        kinds: dict = {}  # the first warning of each kind (its text without file and numbers)
+        for w in warnings:
+            kinds.setdefault(re.sub(r"[-+]?\d[\d.e+-]*", "#", w.split(": ", 1)[-1]), w)
+        frames = {w.split(": ", 1)[0] for w in warnings}
+        for n, w in enumerate(kinds.values()):
+            more = (f" (warnings on {len(frames)} frame(s) of {self.folder} in all)"
+                    if n == len(kinds) - 1 and len(frames) > 1 else "")
+            log.warning("%s%s", w, more)
         self._validated = True
 
     def content_sha256(self) -> str:
