@@ -274,7 +274,8 @@ def test_test_split_motions_and_determinism():
     assert all(content_digest(x) != content_digest(z) for x, z in zip(a, c))  # another seed differs
 
 
-def test_build_split_cache_roundtrip_and_rebuild(tmp_path, monkeypatch):
+def _tiny_split(monkeypatch):
+    """A split "tiny" of two short sequences, registered for the test."""
     subjects = sample_subjects(2, 5, "tiny")
     spec = SplitSpec(
         "tiny", 5, 30.0, lambda seed: subjects,
@@ -282,6 +283,10 @@ def test_build_split_cache_roundtrip_and_rebuild(tmp_path, monkeypatch):
         "two short sequences",
     )
     monkeypatch.setitem(splits_mod.SPLITS, "tiny", spec)
+
+
+def test_build_split_cache_roundtrip_and_rebuild(tmp_path, monkeypatch):
+    _tiny_split(monkeypatch)
     first = build_split("tiny", body=CANON, root=tmp_path)
     folder = tmp_path / "tiny"
     manifest = json.loads((folder / "manifest.json").read_text())
@@ -359,13 +364,7 @@ def test_body_skeleton_does_not_depend_on_the_thread_count(anny_body):
 
 
 def test_build_split_never_deletes_files_it_did_not_write(tmp_path, monkeypatch):
-    subjects = sample_subjects(2, 5, "tiny")
-    spec = SplitSpec(
-        "tiny", 5, 30.0, lambda seed: subjects,
-        lambda subj, seed: splits_mod.plan_random_split(subj, seed, per_subject=1, duration=(2.0, 2.5)),
-        "two short sequences",
-    )
-    monkeypatch.setitem(splits_mod.SPLITS, "tiny", spec)
+    _tiny_split(monkeypatch)
     folder = tmp_path / "tiny"
     folder.mkdir()
     mine = folder / "my_capture.npz"
