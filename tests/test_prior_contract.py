@@ -260,3 +260,22 @@ def test_a_registered_object_that_is_not_a_usable_adapter_is_named_with_its_entr
                 make_adapter("audit-case")
         finally:
             reg.unregister("audit-case")
+
+
+def test_a_plugged_in_prior_records_its_distribution_in_the_spec():
+    """A prior from another package is identified in its units' spec (so in their hash and in the
+    table's prior_info) by its distribution and version: a new version of the package reruns it.
+    The project's own priors, and those registered at run time, carry no such key (their stored
+    units stay valid)."""
+    from benchmark.run import registry as reg
+    from benchmark.run.table_run import plugin_origin, prior_identity
+
+    reg.register("plugged", "priors.no_prior:NoPrior", origin="my-priors 1.2.0")
+    try:
+        assert plugin_origin("plugged") == "my-priors 1.2.0 (priors.no_prior:NoPrior)"
+        adapter = make_adapter("plugged")
+        adapter.name = "plugged"
+        assert prior_identity(adapter, "embedded", None)["plugin"] == "my-priors 1.2.0 (priors.no_prior:NoPrior)"
+    finally:
+        reg.unregister("plugged")
+    assert plugin_origin("vposer-slerp") is None and "plugin" not in prior_identity(make_adapter("no-prior"), "embedded", None)

@@ -51,7 +51,24 @@ def prior_identity(adapter, size: str, weights: str | None) -> dict:
     revision = int(getattr(adapter, "adapter_revision", 1))
     if revision != 1:
         info["adapter_revision"] = revision
+    plugin = plugin_origin(adapter.name)
+    if plugin is not None:  # a prior from another package: its distribution and version (a new version reruns it)
+        info["plugin"] = plugin
     return info
+
+
+PROJECT_DISTRIBUTION = "motion-prior-benchmark"
+
+
+def plugin_origin(name: str) -> str | None:
+    """``"<distribution> <version> (<module:Class>)"`` of a prior another installed package
+    registers by entry point; None for this project's own priors and those registered at run time."""
+    from benchmark.run.registry import registry
+
+    entry = registry().get(name)
+    if entry is None or entry.origin == "runtime" or entry.origin.split(" ")[0] == PROJECT_DISTRIBUTION:
+        return None
+    return f"{entry.origin} ({entry.target})"
 
 
 def table_protocol(spec):
