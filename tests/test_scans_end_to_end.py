@@ -328,6 +328,26 @@ def test_a_sparse_ground_truth_frame_is_an_error_naming_it_not_a_cut_of_every_fr
         source.unit_data(["sparse"])
 
 
+def test_a_cell_denser_than_the_capture_is_na_not_the_sparser_cell_under_its_label(tmp_path):
+    """A 400-point capture cannot give the 1,000- or 10,000-point cells: they were the 400-point cell
+    under those labels (identical numbers); they are n/a, with the reason."""
+    import types
+
+    from benchmark.protocols.completion_unit import run_completion_unit
+    from benchmark.protocols.scan_completion import CellNotServed
+
+    seq = ScanSequence(write_folder(tmp_path / "p400", [person() for _ in range(40)]), check=False)
+    source = ScanCompletionData(table1_spec(window_s=0.7), None, {"p400": seq}, seed=0)
+    obs, _ = source.observe(["p400"], 100, 10.0, seed=0)
+    assert int(obs.lengths.max()) == 100
+    with pytest.raises(CellNotServed, match=r"the capture holds 400 points per observed frame .*a cell of 1000 points"):
+        source.observe(["p400"], 1000, 10.0, seed=0)
+    unit = types.SimpleNamespace(cell={"points": 1000, "fps": 10}, sequence_ids=["p400"], unit_id="u", spec_hash="h",
+                                 prior="no-prior")
+    result = run_completion_unit(unit, table1_spec(window_s=0.7), {}, None, None, source, "cpu")
+    assert result["na_reason"].startswith("the capture holds 400 points") and result["per_sequence"] == []
+
+
 def test_a_capture_slower_than_the_observed_rate_is_an_error_naming_the_folder(tmp_path):
     seq = ScanSequence(write_folder(tmp_path / "slow", [person() for _ in range(4)], fps=4.0))
     source = ScanCompletionData(table1_spec(window_s=0.8), None, {"slow": seq}, seed=0)

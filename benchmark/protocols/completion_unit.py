@@ -316,7 +316,14 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
     degrade_seed = stable_seed("degrade", data_source.seed, cell["points"], cell["fps"], *unit.sequence_ids)
     obs_offsets = None
     if hasattr(data_source, "observe"):  # captured scans (scan_completion.py): nearest capture frames
-        obs, obs_offsets = data_source.observe(unit.sequence_ids, int(cell["points"]), float(cell["fps"]), degrade_seed)
+        from benchmark.protocols.scan_completion import CellNotServed
+
+        try:
+            obs, obs_offsets = data_source.observe(unit.sequence_ids, int(cell["points"]), float(cell["fps"]), degrade_seed)
+        except CellNotServed as exc:  # a sparser capture than the cell: n/a, not the sparser cell under its label
+            from benchmark.core.work_units import na_result
+
+            return na_result(unit, str(exc))
     else:
         obs = degrade(data.scans, int(cell["points"]), float(cell["fps"]), seed=degrade_seed,
                       capture_fps=float(table_spec["data"]["capture_fps"]))

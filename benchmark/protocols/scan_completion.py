@@ -178,8 +178,21 @@ class ScanCompletionData:
             for t, c in enumerate(seq):
                 pts[b, t, : c.shape[0]] = torch.from_numpy(c)
                 lengths[b, t] = c.shape[0]
+        if points is not None and float(lengths.double().median()) < SPARSE_CAPTURE * points:
+            raise CellNotServed(f"the capture holds {int(lengths.double().median())} points per observed frame (median; "
+                                f"{', '.join(sequence_ids[:3])}): a cell of {points} points per frame cannot be drawn "
+                                "from it")
         dense = PointCloudSequence(points=pts, lengths=lengths, timestamps=torch.from_numpy(np.stack(times)))
         return degrade(dense, points, None, seed=seed), offsets
+
+
+# a cell asks a capture for more points per frame than its median observed frame's by more than this
+# factor: it is n/a (the 10,000-point cell of a 300-point capture would be the 300-point one, labelled 10,000)
+SPARSE_CAPTURE = 0.9
+
+
+class CellNotServed(ValueError):
+    """A cell a capture cannot serve (too few points per frame): the unit is n/a with this reason."""
 
 
 def is_scan_source(motions: dict) -> bool:
