@@ -69,6 +69,12 @@ def test_mismatched_or_unordered_timestamps_are_errors_naming_the_file(tmp_path)
         ScanSequence(write_folder(tmp_path / "a", clouds, timestamps=[0.0, 0.02]))
     with pytest.raises(ValueError, match=r"timestamps\.txt: timestamps must be finite and strictly increasing.*frame_0002"):
         ScanSequence(write_folder(tmp_path / "b", clouds, timestamps=[0.0, 0.02, 0.01]))
+    d = write_folder(tmp_path / "d", clouds)
+    np.save(d / "frame_0003.npy", clouds[0])  # not a frame format: named when the counts disagree
+    (d / "._frame_0001.npz").write_bytes(b"\0\5\26\7")  # macOS metadata twin: never a frame
+    (d / "timestamps.txt").write_text("0.0\n0.02\n0.04\n0.06\n")
+    with pytest.raises(ValueError, match=r"4 timestamps for 3 frame files.*not frames .*: frame_0003\.npy$"):
+        ScanSequence(d)
     c = write_folder(tmp_path / "c", clouds)
     (c / "timestamps.txt").unlink()
     np.save(c / "timestamps.npy", np.array(["0.00s", "0.02s", "0.04s"]))

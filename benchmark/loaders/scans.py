@@ -59,13 +59,23 @@ def list_scan_frames(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"scan folder {folder} does not exist or is not a directory")
-    frames = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES]
+    # hidden files (macOS's ._frame_0001.ply metadata twins, editors' .swp) are never frames
+    frames = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES
+              and not p.name.startswith(".")]
     if not frames:
         raise FileNotFoundError(
             f"scan folder {folder}: no frames found; expected one file per frame with suffix "
             f"{', '.join(FRAME_SUFFIXES)} (e.g. frame_0001.ply)"
         )
     return sorted(frames, key=lambda p: natural_key(p.name))
+
+
+def _not_frames(folder: Path) -> str:
+    """``"; not frames: a.npy, b.txt"``: the folder's other visible files (the timestamps file aside),
+    for a message about a frame count; empty when there are none."""
+    other = sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")
+                   and p.suffix.lower() not in FRAME_SUFFIXES and p.name not in TIMESTAMP_FILES)
+    return f"; not frames (a frame is {', '.join(FRAME_SUFFIXES)}): {', '.join(other[:5])}" if other else ""
 
 
 def _check_points(path: Path, points: np.ndarray, what: str) -> np.ndarray:
@@ -216,7 +226,7 @@ def load_scan_folder(
     if ts.shape[0] != T:
         raise ValueError(
             f"scan folder {folder}: {source} gives {ts.shape[0]} timestamps for {T} frame files; "
-            "give exactly one time per frame"
+            f"give exactly one time per frame{_not_frames(Path(folder))}"
         )
     if not np.isfinite(ts).all() or (T > 1 and not (np.diff(ts) > 0).all()):
         raise ValueError(f"scan folder {folder}: timestamps from {source} must be finite and strictly increasing")
@@ -340,12 +350,13 @@ class ScanSequence:
         if ts.shape[0] != len(self.frames):
             raise ValueError(
                 f"{source}: {ts.shape[0]} timestamps for {len(self.frames)} frame files in {self.folder}; "
-                "give exactly one time per frame (frames are the .ply/.obj/.npz files, in natural order)"
+                f"give exactly one time per frame (frames are the .ply/.obj/.npz files, in natural order)"
+                f"{_not_frames(self.folder)}"
             )
         if not np.isfinite(ts).all() or (ts.shape[0] > 1 and not (np.diff(ts) > 0).all()):
             bad = int(np.argmax(~np.isfinite(ts))) if not np.isfinite(ts).all() else int(np.argmax(np.diff(ts) <= 0)) + 1
             raise ValueError(f"{source}: timestamps must be finite and strictly increasing (entry {bad}, "
-                             f"frame {self.frames[min(bad, len(self.frames) - 1)].name}: {ts[bad]!r})")
+                             f"frame {self.frames[min(bad, len(self.frames) - 1)].name}: {float(ts[bad])!r})")
         if len(self.frames) < 2:
             raise ValueError(f"scan folder {self.folder}: one frame only; a sequence needs at least two")
         fix = None
