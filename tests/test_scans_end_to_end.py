@@ -283,6 +283,19 @@ def test_complete_on_a_motion_file_and_a_bad_input(tmp_path, capsys):
     assert "no such scan folder or motion file" in capsys.readouterr().err
 
 
+def test_complete_names_the_option_a_capture_cannot_serve_and_leaves_no_folder(tmp_path, capsys):
+    from benchmark.cli import main
+
+    seq = write_folder(tmp_path / "cap", [person() for _ in range(30)], fps=10.0)  # 400 points, 10 fps
+    for extra, says in ((["--points", "1000", "--fps", "5"], "--points 1000: the capture holds 400 points"),
+                        (["--points", "100", "--fps", "30"], "--fps 30: scan folder")):
+        out = tmp_path / "out"
+        assert main(["complete", str(seq), "--prior", "no-prior", "--out", str(out), "--steps", "1", "--no-preview",
+                     *extra]) == 2
+        assert says in capsys.readouterr().err
+        assert not out.exists()  # created for the run, which failed before writing: removed
+
+
 # Issue 11's target for a converged no-prior fit (MPJPE <= 40 mm at 10,000 points / 10 fps). The
 # facing search (benchmark.protocols.facing.facing_search, what `complete` uses) turns the
 # capture the right way; the schedule that converges the limbs is issue 11's open part, so the

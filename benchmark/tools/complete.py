@@ -94,8 +94,17 @@ def _load_input(path: Path, args, body, spec: dict):
         wspec = copy.deepcopy(spec)
         wspec["data"].update(window_s=window, window_start_s=start)
         source = ScanCompletionData(wspec, body, {path.name: seq}, args.seed)
-        obs, offsets = source.observe([path.name], args.points, args.fps,
-                                      stable_seed("degrade", args.seed, args.points, args.fps, path.name))
+        try:
+            obs, offsets = source.observe([path.name], args.points, args.fps,
+                                          stable_seed("degrade", args.seed, args.points, args.fps, path.name))
+        except ValueError as exc:  # the capture's own limits, said as the options that hit them
+            from benchmark.protocols.scan_completion import CellNotServed
+
+            if isinstance(exc, CellNotServed):
+                raise ValueError(f"--points {args.points}: {exc}; give fewer points") from None
+            if "no distinct frame for every instant" in str(exc):
+                raise ValueError(f"--fps {args.fps:g}: {exc}; give a lower --fps") from None
+            raise
         t_start = float(obs.timestamps[0, 0])
         truth_file = path / "ground_truth" / "motion.npz"
         truth = shape_for_body(Motion.load(truth_file), body, str(truth_file)) if truth_file.is_file() else None
@@ -175,6 +184,20 @@ def _preview(out: Path, output, truth_vertices, body, out_t, obs) -> str:
 
 
 def run_complete(args) -> dict:
+    """``complete``: the checks, then the fit and its outputs (:func:`_complete`); a folder this run
+    created for ``--out`` and left empty (it failed before writing) is removed."""
+    t_begin = time.perf_counter()
+    created = not Path(args.out).expanduser().exists()
+    out, earlier = check_complete_args(args)
+    try:
+        return _complete(args, out, earlier, t_begin)
+    except BaseException:
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # made for this run, which wrote nothing: not left behind
+        raise
+
+
+def _complete(args, out: Path, earlier: list[str], t_begin: float) -> dict:
     import roma
 
     from benchmark.body import get_body
@@ -185,8 +208,6 @@ def run_complete(args) -> dict:
     from benchmark.run.registry import make_adapter
     from benchmark.synthetic.scan_set import write_ply_mesh
 
-    t_begin = time.perf_counter()
-    out, earlier = check_complete_args(args)
     spec = load_table_spec("table1")
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     profile_name = args.profile or ("full" if device.startswith("cuda") else "quick")
