@@ -22,9 +22,8 @@ def _read_table(path: str, what: str) -> dict:
 
 def _cmd_merge_rows(args) -> int:
     from benchmark.run.table_merge import replace_rows
-    from benchmark.run.writers import FORMATS, write_table
-
     from benchmark.core.outdir import check_out_dir
+    from benchmark.run.writers import FORMATS, write_table
 
     if args.stem is not None and (not args.stem or Path(args.stem).name != args.stem or args.stem in (".", "..")):
         raise ValueError(f"--stem {args.stem!r}: must be a plain file name without a folder (e.g. table1.quick); "
@@ -34,8 +33,8 @@ def _cmd_merge_rows(args) -> int:
     merged = replace_rows(base, new, source=args.new, base_source=args.base)
     stem = args.stem or merged["table"]
     targets = [out / f"{stem}.{fmt}" for fmt in FORMATS]
-    inputs = {Path(args.new).resolve(): "NEW"}
-    inputs[Path(args.base).resolve()] = "BASE" if Path(args.base).resolve() not in inputs else "BASE (and NEW)"
+    base_file, new_file = Path(args.base).resolve(), Path(args.new).resolve()
+    inputs = {new_file: "NEW", base_file: "BASE (and NEW)" if base_file == new_file else "BASE"}
     clash = [f"{t} is {inputs[t.resolve()]}" for t in targets if t.resolve() in inputs]
     if clash:
         raise FileExistsError(f"--out {out} --stem {stem}: {'; '.join(clash)}, which this command reads; write the merged "

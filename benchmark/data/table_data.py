@@ -13,12 +13,6 @@ from benchmark.core.safe_loading import npz_read_error
 log = logging.getLogger(__name__)
 
 
-def _is_amass_shape_file(path: Path, keys: set) -> bool:
-    """An AMASS subject's shape file (``shape.npz``, ``*_shape.npz``: betas and gender, no poses)."""
-    has_pose = "poses" in keys or {"root_orient", "pose_body"} <= keys
-    return not has_pose and (path.name == "shape.npz" or path.name.endswith("_shape.npz") or "betas" in keys)
-
-
 def load_motions(data: str | None, min_duration: float, body=None) -> dict:
     """Test motions by id: the synthetic test split by default, or a folder of motion files (each
     checked by its loader: :mod:`benchmark.core.plausibility`)."""
@@ -31,7 +25,7 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
     elif data.startswith("scans="):
         raise ValueError(f"--data {data}: captured scans are read by the completion protocol (table1) only")
     else:
-        from benchmark.loaders.amass import load_amass
+        from benchmark.loaders.amass import is_shape_file, load_amass
 
         root = Path(data.split("=", 1)[-1])
         files = sorted(root.rglob("*.npz")) if root.is_dir() else [root]
@@ -47,7 +41,7 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
             except Exception as exc:  # not a zip, a pickle, truncated...
                 raise ValueError(f"--data {data}: {f} is not a readable .npz file ({npz_read_error(f, exc)}); "
                                  "remove it from the folder or re-export it (python -m benchmark data convert)") from None
-            if root.is_dir() and _is_amass_shape_file(f, keys):
+            if root.is_dir() and is_shape_file(f, keys):
                 shape_files.append(f)  # an AMASS subject's shape.npz / *_shape.npz beside its sequences
                 continue
             try:

@@ -75,6 +75,14 @@ def _text(a) -> str:
     return v.decode("utf-8") if isinstance(v, bytes) else str(v)
 
 
+def is_shape_file(path: str | Path, keys) -> bool:
+    """An AMASS subject's shape file (``shape.npz``, ``*_shape.npz``: betas and gender, no poses),
+    from its name and its keys (``keys``: the file's field names)."""
+    name = Path(path).name
+    has_pose = "poses" in keys or ("root_orient" in keys and "pose_body" in keys)
+    return name.endswith("_shape.npz") or (not has_pose and (name == "shape.npz" or "betas" in keys))
+
+
 def load_amass(
     path,
     fps: float | None = None,
@@ -102,7 +110,7 @@ def load_amass(
         raise ValueError(f"{path}: not a readable .npz file ({npz_read_error(path, e)})") from e
 
     has_pose = "poses" in data or ("root_orient" in data and "pose_body" in data)
-    if path.name.endswith("_shape.npz") or (not has_pose and "betas" in data):
+    if is_shape_file(path, data):
         raise ValueError(
             f"{path}: this is an AMASS shape file (betas/gender only, no poses); "
             "load the subject's *_poses.npz / *_stageii.npz sequences instead"

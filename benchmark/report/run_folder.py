@@ -28,23 +28,20 @@ class RunFolder:
         """The stored units of a table's cell, or ([], why) where they are not the ones the table was
         derived from (a later run into the folder under other settings, stopped before it wrote its
         table): their observation fingerprints and per-sequence values must be the cell's."""
+        from benchmark.run.table_derive import cell_fingerprint, sequence_values
+
         units = self.units_of(table["table"], prior, cell)
         if not units or table_cell.get("na_reason"):
             return units, None
-        import hashlib
-
-        fingerprint = hashlib.sha256(canonical_json(sorted(str(u.get("fingerprint")) for u in units)).encode()).hexdigest()
         per_seq = table_cell.get("per_sequence") or {}
-        ids = list(per_seq.get("id") or [])
         stored = [row for u in units for row in (u.get("per_sequence") or [])]
-        same = fingerprint == table_cell.get("fingerprint") and [r.get("id") for r in stored] == ids
+        same = (cell_fingerprint(units) == table_cell.get("fingerprint")
+                and [r.get("id") for r in stored] == list(per_seq.get("id") or []))
         for m in table.get("metrics") or []:
             values = per_seq.get(m["name"])
-            if not same or values is None:
-                continue
-            key, factor = si_metric(m["name"])
-            mine = [factor * r["sums"][key] / r["frames"] if key in (r.get("sums") or {}) else None for r in stored]
-            same = all(a is not None and abs(a - b) <= 1e-9 * max(1.0, abs(b)) for a, b in zip(mine, values))
+            if same and values is not None:
+                same = all(a is not None and abs(a - b) <= 1e-9 * max(1.0, abs(b))
+                           for a, b in zip(sequence_values(stored, m["name"]), values))
         if same:
             return units, None
         why = (f"the stored units of this cell ({', '.join(u['unit_id'] for u in units)}) are not the ones "

@@ -182,6 +182,18 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
     return table
 
 
+def cell_fingerprint(units) -> str:
+    """A cell's ``fingerprint``: sha256 of its units' sorted observation fingerprints."""
+    return hashlib.sha256(canonical_json(sorted(str(u["fingerprint"]) for u in units)).encode()).hexdigest()
+
+
+def sequence_values(rows, metric: str) -> list:
+    """Each per-sequence row's value of ``metric`` in reported units (its sum over the row's frames);
+    None for a row without it."""
+    key, factor = si_metric(metric)
+    return [factor * r["sums"][key] / r["frames"] if key in (r.get("sums") or {}) else None for r in rows]
+
+
 def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list[dict], seed_parts: tuple) -> dict:
     """One cell from its units' results; ``seed_parts``: (table seed, prior), for its intervals' seeds."""
     out: dict[str, Any] = dict(cell)
@@ -192,7 +204,7 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
     if len(done) < n_units:
         out["na_reason"] = f"incomplete: {len(done)} of {n_units} units"
         return out
-    out["fingerprint"] = hashlib.sha256(canonical_json(sorted(r["fingerprint"] for r in done)).encode()).hexdigest()
+    out["fingerprint"] = cell_fingerprint(done)
     reasons = list(dict.fromkeys(r["na_reason"] for r in done if r["na_reason"] is not None))
     if reasons:
         out["na_reason"] = "; ".join(reasons)
@@ -220,7 +232,7 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
             continue
         total = math.fsum(row["sums"][key] for row in seqs)
         out[name] = factor * total / sum(frames)
-        per_seq = [factor * row["sums"][key] / row["frames"] for row in seqs]
+        per_seq = sequence_values(seqs, name)
         out[f"{name}_std"] = statistics.pstdev(per_seq) if len(per_seq) > 1 else 0.0
         if len(per_seq) > 1:
             rng = np.random.default_rng(stable_seed("bootstrap", *seed_parts, canonical_json(cell), name))
