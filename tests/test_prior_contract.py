@@ -279,3 +279,16 @@ def test_a_plugged_in_prior_records_its_distribution_in_the_spec():
     finally:
         reg.unregister("plugged")
     assert plugin_origin("vposer-slerp") is None and "plugin" not in prior_identity(make_adapter("no-prior"), "embedded", None)
+
+
+def test_a_network_that_read_no_weights_file_is_recorded_untrained():
+    """A prior with parameters that read no weights file (a plug-in's untrained fallback) is recorded
+    as ``untrained`` in its units' spec, so the table can mark its row; the project's priors, which
+    read their embedded weights, and no-prior (no parameters) carry no such key."""
+    from benchmark.run.table_run import prior_identity
+
+    adapter = make_adapter("hmvae")
+    assert "untrained" not in prior_identity(adapter, "embedded", None)
+    assert "untrained" not in prior_identity(make_adapter("no-prior"), "embedded", None)
+    adapter.weights_path = None  # as an adapter that found no file and kept its initial parameters
+    assert prior_identity(adapter, "embedded", None)["untrained"] is True

@@ -123,3 +123,20 @@ def test_a_table_read_back_from_json_is_written_as_it_was(table, tmp_path):
     assert grid_axes(back) == list(table["grid"]) == ["points", "fps"]
     for fmt in (format_markdown, format_csv, format_latex):
         assert fmt(back) == fmt(table)
+
+
+def test_an_untrained_row_is_marked_in_markdown_and_latex(table):
+    """A row whose prior read no weights file (``prior_info[...]["untrained"]``) carries a footnote
+    saying it measures no trained prior; the other rows carry none."""
+    import copy
+
+    marked = copy.deepcopy(table)
+    marked.setdefault("prior_info", {}).setdefault("my_prior", {})["untrained"] = True
+    md = format_markdown(marked)
+    rows = [l for l in md.splitlines() if l.startswith("| my_prior")]
+    assert rows and all(l.startswith("| my_prior [^") for l in rows)
+    assert "my_prior read no weights file" in md and "untrained parameters" in md
+    assert not any(l.startswith("| vposer-slerp [^") for l in md.splitlines())
+    assert "my_prior read no weights file" not in format_markdown(table)
+    tex = format_latex(marked)
+    assert any(l.startswith(r"my\_prior$^{") for l in tex.splitlines()) and "untrained parameters" in tex

@@ -48,6 +48,8 @@ def prior_identity(adapter, size: str, weights: str | None) -> dict:
 
     info = {"size": size, "weights": weights, "weights_sha256": _sha_file(weights),
             "embedded_sha256": weights_content_sha256(adapter)}
+    if info["weights_sha256"] is None and info["embedded_sha256"] is None and adapter.parameter_count() > 0:
+        info["untrained"] = True  # a network that read no weights file (left out otherwise: stored hashes keep)
     revision = int(getattr(adapter, "adapter_revision", 1))
     if revision != 1:
         info["adapter_revision"] = revision
@@ -160,6 +162,8 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
         w = weights.get(name)
         adapters[name] = make_adapter(name, size=size, weights=w, device=device)
         prior_info[name] = prior_identity(adapters[name], size, w)
+        if prior_info[name].get("untrained"):
+            log.warning("%s read no weights file: its row measures an untrained network (the table marks it)", name)
 
     # the content of the motion data each sequence id stands for enters its units' spec hash
     data_hashes = {sid: motion_sha256(motions[sid]) for sid in ids}

@@ -16,8 +16,6 @@ Numbers arrive already in reported units (the derivation converted them); nothin
 
 from __future__ import annotations
 
-import csv
-import io
 import logging
 import os
 from pathlib import Path
@@ -27,6 +25,7 @@ from benchmark.core.fit_diagnostics import (BACKWARDS_DEG, CONVERGED_MAX_DECREAS
                                       cell_flagged)
 from benchmark.core.json_io import atomic_write_json, atomic_write_text
 from benchmark.core.work_units import grid_axes
+from benchmark.run.csv_format import format_csv
 from benchmark.run.table_derive import NO_PRIOR
 
 log = logging.getLogger(__name__)
@@ -151,6 +150,15 @@ def _cell_reason(cell: Mapping, metric: str) -> str | None:
         return cell["na_reason"]
     if cell.get(metric) is None:
         return cell.get("metric_na", {}).get(metric, "no value")
+    return None
+
+
+def untrained_reason(table: Mapping, prior: str) -> str | None:
+    """Why a row measures no trained prior (its network read no weights file: ``prior_info``'s
+    ``untrained``, :func:`benchmark.run.table_run.prior_identity`), or None."""
+    if ((table.get("prior_info") or {}).get(prior) or {}).get("untrained"):
+        return (f"{prior} read no weights file: its network kept its initial, untrained parameters, so this row "
+                "measures no trained prior (give its weights with --weights, or train them)")
     return None
 
 
@@ -279,7 +287,9 @@ def format_markdown(table: Mapping) -> str:
                 else:
                     flag = f" {FLAG}" if cell_flagged(cell.get("diagnostics")) else ""
                     out.append(cell_text(cell, name) + flag)
-            lines.append(f"| {row['prior']} | " + " | ".join(out) + " |")
+            untrained = untrained_reason(table, row["prior"])
+            label = row["prior"] + (f" {note(untrained)}" if untrained else "")
+            lines.append(f"| {label} | " + " | ".join(out) + " |")
         paper = _paper_rows(table, name)
         for prior, numbers in paper:
             shown = ["–" if v is None else f"{v:g}" for v in numbers]
@@ -338,74 +348,6 @@ def _diagnostics_section(rows: list, labels: list[str]) -> list[str]:
 # CSV and LaTeX
 # --------------------------------------------------------------------------------------------
 
-PAIRED_ROLES = {"no_prior": "vs_no_prior", "best": "vs_best"}  # cell["paired"][metric] key -> CSV column prefix
-_PAIRED_FIELDS = ("diff", "ci95_lo", "ci95_hi", "significant", "better")
-
-
-def _csv_number(value) -> str:
-    return "" if value is None else repr(float(value))
-
-
-def _csv_flag(value) -> str:
-    return "" if value is None else str(bool(value)).lower()
-
-
-def _paired_columns(cell: Mapping, metric: str, role: str) -> list[str]:
-    c = ((cell.get("paired") or {}).get(metric) or {}).get(role)
-    if not c:
-        return [""] * len(_PAIRED_FIELDS)
-    lo, hi = c["ci95"] if c.get("ci95") is not None else (None, None)
-    return [_csv_number(c["diff"]), _csv_number(lo), _csv_number(hi), _csv_flag(c.get("significant")),
-            _csv_flag(c.get("better"))]
-
-
-def format_csv(table: Mapping) -> str:
-    """Long format: one line per prior x cell x metric (``value``, ``std``, ``ci95_lo``,
-    ``ci95_hi`` in ``unit``), then the paired comparisons: ``vs_no_prior_*`` (against no-prior),
-    ``best_prior`` (the cell's best prior by the metric's mean) and ``vs_best_*`` (against it): the
-    mean difference this prior minus the other, its interval, ``significant`` (the interval
-    excludes 0) and ``better`` (``true`` / ``false``). Empty where it does not apply."""
-    grid_keys = grid_axes(table)
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(["table", "protocol_version", "profile", "prior", *grid_keys, "metric", "unit", "value", "std",
-                     "sequences", "frames", "na_reason", "ci95_lo", "ci95_hi",
-                     *(f"vs_no_prior_{f}" for f in _PAIRED_FIELDS), "best_prior", *(f"vs_best_{f}" for f in _PAIRED_FIELDS)])
-    best = _best_priors(table)
-    for row in table["rows"]:
-        for j, cell in enumerate(row["cells"]):
-            for metric in table["metrics"]:
-                name = metric["name"]
-                reason = _cell_reason(cell, name)
-                value = "" if reason is not None else repr(float(cell[name]))
-                std = cell.get(f"{name}_std")
-                ci = cell.get(f"{name}_ci95") if reason is None else None
-                writer.writerow([table["table"], table["protocol_version"], table["profile"], row["prior"],
-                                 *(cell[k] for k in grid_keys), name, metric_unit(name) or "", value,
-                                 "" if reason is not None or std is None else repr(float(std)),
-                                 cell.get("sequences", ""), cell.get("frames", ""), reason or "",
-                                 *((_csv_number(ci[0]), _csv_number(ci[1])) if ci is not None else ("", "")),
-                                 *_paired_columns(cell, name, "no_prior"), best.get((j, name), ""),
-                                 *_paired_columns(cell, name, "best")])
-    return buf.getvalue()
-
-
-def _best_priors(table: Mapping) -> dict[tuple[int, str], str]:
-    """(cell index, metric) -> the cell's best prior, as the paired comparisons name it (empty for a
-    table derived before them)."""
-    out = {}
-    for row in table["rows"]:
-        for j, cell in enumerate(row["cells"]):
-            for metric, roles in (cell.get("paired") or {}).items():
-                if (roles or {}).get("best"):
-                    out[(j, metric)] = roles["best"]["vs"]
-    for row in table["rows"]:  # the best prior itself has no comparison against the best
-        for j, cell in enumerate(row["cells"]):
-            for metric in cell.get("paired") or {}:
-                out.setdefault((j, metric), row["prior"])
-    return out
-
-
 _TEX_ESCAPES = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
                 "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}"}
 
@@ -455,7 +397,11 @@ def format_latex(table: Mapping) -> str:
                 if significant_win(cell, name):
                     text += r"$^\dagger$"
                 values.append(text)
-        out.append(tex_escape(row["prior"]) + " & " + " & ".join(values) + r" \\")
+        untrained = untrained_reason(table, row["prior"])
+        if untrained:
+            marks.setdefault(untrained, len(marks) + 1)
+        out.append(tex_escape(row["prior"]) + (rf"$^{{{marks[untrained]}}}$" if untrained else "") + " & "
+                   + " & ".join(values) + r" \\")
     paper = _paper_rows(table, name)
     if paper:
         out += [r"\midrule", rf"\multicolumn{{{n + 1}}}{{l}}{{\emph{{Paper's numbers, on the paper's own data (reference only)}}}} \\"]
