@@ -62,7 +62,8 @@ def _values(result, spec):
     out = {}
     for m in spec["metrics"]:
         key, factor = si_metric(m["name"])
-        out[m["name"]] = factor * row["sums"][key] / row["frames"]
+        if key in row["sums"]:  # a metric n/a for this prior (row["na"]) is left out
+            out[m["name"]] = factor * row["sums"][key] / row["frames"]
     return out
 
 
@@ -107,10 +108,15 @@ def test_denoise_units_noise_determinism_and_na(anny_body, motions, vposer):
         assert r["na_reason"] is None and r["device_name"]
         v = _values(r, spec)
         assert all(math.isfinite(x) for x in v.values()), v
-        assert v["s_per_frame"] > 0 and v["v2v_mm"] > 0 and v["gt_accel"] > 0
+        assert v["time_per_frame_s"] > 0 and v["v2v_mm"] > 0 and v["gt_accel_mps2"] > 0
         assert v["obs_v2v_mm"] > 20  # 0.1 rad of noise on every joint
-        assert v["obs_accel"] > v["gt_accel"]
+        assert v["obs_accel_mps2"] > v["gt_accel_mps2"]
     assert r_reg["method"] == "encode_motion -> decode"
+    # version 2: no-prior (an exact encode_motion) starts at the noisy motion, VPoser at its encoder's
+    # output; every fit stores its diagnostics (a cap below the plateau rule's least steps: unconverged)
+    assert r_no["method"].startswith("fit (init observation, plateau rule, cap")
+    assert r_vp["method"].startswith("fit (init encoder, plateau rule, cap")
+    assert all(row["diagnostics"]["converged"] is False for row in r_no["per_sequence"])
     # the observation depends on (seed, sigma, sequence), never on the prior or the mode
     assert r_no["fingerprint"] == r_vp["fingerprint"] == r_reg["fingerprint"]
     again = denoise.make_source(spec, anny_body, motions, seed=7)
@@ -134,7 +140,7 @@ def test_denoise_motion_hook_and_metric_plumbing(anny_body, motions):
     v = _values(r, spec)
     assert r["method"] == "denoise_motion(mode='regression')"
     assert v["v2v_mm"] == pytest.approx(v["obs_v2v_mm"], rel=1e-5)  # echoing the observation scores the observation
-    assert v["accel"] == pytest.approx(v["obs_accel"], rel=1e-4)
+    assert v["accel_mps2"] == pytest.approx(v["obs_accel_mps2"], rel=1e-4)
 
 
 # -------------------------------------------------------------------------------- inbetween
@@ -189,9 +195,13 @@ def test_reconstruction_units(anny_body, motions, vposer):
     # an exact encoder (the SLERP adapter's identity) with the ground truth's root and translation
     # reconstructs the motion: every error is zero, the acceleration is the ground truth's
     exact = _values(_run(reconstruction, spec, SlerpBaseline(), anny_body, src, {"window": 2.0}), spec)
-    assert exact["mpjpe_mm"] < 1e-2 and exact["v2v_mm"] < 1e-2 and exact["accer"] < 1e-2
-    assert exact["accel"] == pytest.approx(exact["gt_accel"], rel=1e-3)
-    assert exact["root_mm"] < 1e-2 and exact["gt_travel_mm"] == pytest.approx(v["gt_travel_mm"])
+    assert exact["mpjpe_mm"] < 1e-2 and exact["mpjpe_local_mm"] < 1e-2 and exact["v2v_mm"] < 1e-2
+    assert exact["accer_mps2"] < 1e-2 and v["mpjpe_local_mm"] > 0
+    assert exact["accel_mps2"] == pytest.approx(exact["gt_accel_mps2"], rel=1e-3)
+    assert exact["gt_travel_mm"] == pytest.approx(v["gt_travel_mm"])
+    # a prior given the ground truth's translation has no root error of its own: n/a with its reason (v3)
+    assert "root_mm" not in exact and "root_mm" not in v
+    assert r["per_sequence"][0]["na"] == {"root_m": reconstruction.ROOT_FROM_GROUND_TRUTH}
 
 
 def test_root_path_errors_by_hand():
@@ -232,3 +242,26 @@ def test_run_table_inbetween_smoke(anny_body, motions, tmp_path):
     for row in table["rows"]:
         for cell in row["cells"]:
             assert cell.get("na_reason") is None and math.isfinite(cell["mpjpe_mm"]) and cell["frames"] == cell["gap"]
+
+
+def test_a_motion_whose_last_frame_ends_before_the_windows_is_skipped(tmp_path, anny_body, caplog):
+    """A 2.0 s motion at 24 fps (48 frames) ends at 1.958 s: resampled to 30 fps it cannot hold a 2 s
+    window's 60th frame (1.967 s). It is skipped with a warning, the others run; alone it is an error
+    naming the span it needs (it used to fail every unit with 'outside the motion')."""
+    import numpy as np
+
+    def write(name, frames, fps):
+        np.savez(tmp_path / name, poses=np.zeros((frames, 22, 3), np.float32), trans=np.zeros((frames, 3), np.float32),
+                 timestamps=np.arange(frames) / fps, fps=np.float64(fps), source=np.str_(name))
+
+    write("m24.npz", 48, 24.0)
+    write("m30.npz", 90, 30.0)
+    spec = load_table_spec("inbetween")
+    with caplog.at_level("WARNING"):
+        motions = motion_fit.load_table_motions(spec, str(tmp_path), anny_body)
+    assert sorted(motions) == ["m30.npz"] and "m24.npz" in caplog.text
+    (tmp_path / "m30.npz").unlink()
+    with pytest.raises(ValueError, match=r"no motion spans the 1.967 s .* m24.npz: 1.958 s"):
+        motion_fit.load_table_motions(spec, str(tmp_path), anny_body)
+    src = inbetween.make_source(spec, anny_body, {"ok": motions["m30.npz"]}, seed=0)
+    assert src.clean(["ok"]).num_frames == 60

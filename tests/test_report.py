@@ -350,3 +350,18 @@ def test_report_in_headless_chromium(report):
 
     shot = np.asarray(Image.open(io.BytesIO(png)).convert("L"), dtype=np.float32)
     assert shot.std() > 10 and (shot < 128).mean() > 0.005  # not blank: text and tables drawn
+
+
+def test_a_motion_tables_cell_says_its_protocol_stores_no_motion(tmp_path):
+    """The motion tables never store fitted motions: the report says so instead of asking for a rerun
+    (which would store none either); a completion cell without its .npz still gets the rerun hint."""
+    from types import SimpleNamespace
+
+    from benchmark.report.cells import CellReport, diagnose
+
+    for protocol, expected in (("inbetween", "the inbetween protocol stores no fitted motion"),
+                               ("completion", "Rerun the table with --resume never")):
+        run = SimpleNamespace(tables=[{"table": "t", "protocol": protocol}], npz_path=lambda u: tmp_path / "none.npz")
+        cr = CellReport(table="t", prior="hmvae", cell={"gap": 5}, anchor="a", units=[{"unit_id": "t__hmvae__gap=5__b000"}])
+        diagnose(run, cr, tmp_path, 1, "gif", None, 10.0, [])
+        assert expected in cr.no_animation

@@ -303,7 +303,7 @@ def test_smoke_table_run_writes_json(tmp_path, anny_body, monkeypatch):
 
 # --------------------------------------------------------------------------- protocol v4: start search, plateau rule
 def test_v4_rules_are_in_the_spec():
-    from benchmark.protocols.completion_unit import plateau_rule
+    from benchmark.protocols.step_rules import plateau_rule
 
     spec = load_table_spec("sls")
     assert spec["protocol_version"] >= 4 and spec["objective"]["start_search"] == "observation"

@@ -6,7 +6,7 @@ Goldens change only through ``python -m pytest tests/test_tables_regression.py -
 units; every prior of a cell must see the same observation (its fingerprint), and fingerprints that
 differ from the golden's are a warning (``goldens.warn_if_inputs_changed``); tolerances are
 ``goldens.tolerances``.
-Timing columns (``s_per_frame``) are measured, machine-dependent, and never compared.
+Timing columns (``time_per_frame_s``; version 1: ``s_per_frame``) are measured, machine-dependent, and never compared.
 """
 
 import json

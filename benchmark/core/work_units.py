@@ -122,22 +122,48 @@ def table_rules(table_spec: Mapping) -> dict:
     return rules
 
 
+METRIC_DIRECTIONS = ("lower", "higher", "closest", "none")
+
+
 def metric_specs(table_spec: Mapping) -> list[dict]:
-    """The spec's ``metrics`` list, validated: each ``{name, better: lower|higher, description}``."""
+    """The spec's ``metrics`` list, validated: each ``{name, better, description}``, ``better`` one of
+    :data:`METRIC_DIRECTIONS`: ``lower`` / ``higher`` is better; ``closest``: the nearer to the metric
+    named by ``reference`` (e.g. an acceleration to the ground truth's own) the better; ``none``: a
+    reference figure, never ranked (no arrow, no best prior, no paired comparison). Optional:
+    ``tolerance`` (``compare``'s default for it, in its unit) and ``timing: true`` (a measured time:
+    ``compare`` reports it, never fails on it)."""
     metrics = spec_field(table_spec, "metrics")
     if not isinstance(metrics, list) or not metrics:
         raise ValueError(f"{spec_source(table_spec)}: field 'metrics' must be a non-empty list")
     out, seen = [], set()
+    names = {m.get("name") for m in metrics if isinstance(m, Mapping)}
     for i, m in enumerate(metrics):
         if not isinstance(m, Mapping) or not isinstance(m.get("name"), str):
             raise ValueError(f"{spec_source(table_spec)}: metrics[{i}] must be a mapping with a 'name'")
+        where = f"{spec_source(table_spec)}: metrics[{i}] ({m['name']})"
         better = m.get("better", "lower")
-        if better not in ("lower", "higher"):
-            raise ValueError(f"{spec_source(table_spec)}: metrics[{i}] ({m['name']}): 'better' must be lower or higher, got {better!r}")
+        if better not in METRIC_DIRECTIONS:
+            raise ValueError(f"{where}: 'better' must be one of {', '.join(METRIC_DIRECTIONS)}, got {better!r}")
         if m["name"] in seen:
             raise ValueError(f"{spec_source(table_spec)}: metric {m['name']!r} is listed twice")
         seen.add(m["name"])
-        out.append({"name": m["name"], "better": better, "description": m.get("description", "")})
+        entry = {"name": m["name"], "better": better, "description": m.get("description", "")}
+        if better == "closest":
+            ref = m.get("reference")
+            if ref not in names or ref == m["name"]:
+                raise ValueError(f"{where}: 'better: closest' needs 'reference', another metric of the table; got {ref!r}")
+            entry["reference"] = ref
+        if "tolerance" in m:
+            tol = m["tolerance"]
+            if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol >= 0:
+                raise ValueError(f"{where}: 'tolerance' must be a number >= 0 (in the metric's unit), got {tol!r}")
+            entry["tolerance"] = float(tol)
+        if m.get("timing") is not None:
+            if not isinstance(m["timing"], bool):
+                raise ValueError(f"{where}: 'timing' must be true or false, got {m['timing']!r}")
+            if m["timing"]:
+                entry["timing"] = True
+        out.append(entry)
     return out
 
 

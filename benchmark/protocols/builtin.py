@@ -98,7 +98,7 @@ class DenoiseProtocol(ModuleProtocol):
     spec_keys = {
         "data": frozenset({"split", "fps", "window_s", "window_start_s", "shape", "observations", "noise", "num_markers"}),
         "objective": frozenset({"data_term", "lambda_prior", "lr", "optimiser", "schedule", "init", "regression",
-                                "optimisation"}),
+                                "optimisation", "step_rule", "plateau", "denoiser_iterations"}),
     }
 
     def functions(self):
@@ -114,7 +114,7 @@ class InbetweenProtocol(ModuleProtocol):
     spec_keys = {
         "data": frozenset({"split", "fps", "window_s", "window_start_s", "shape", "observations", "context_frames"}),
         "objective": frozenset({"data_term", "lambda_prior", "lr", "optimiser", "schedule", "init", "rigid",
-                                "rotation_weight_mm2", "baseline"}),
+                                "rotation_weight_mm2", "baseline", "step_rule", "plateau"}),
     }
 
     def functions(self):

@@ -20,6 +20,7 @@ from benchmark.data.degrade import degrade, fingerprint
 from benchmark.core.fit_diagnostics import sequence_diagnostics
 from benchmark.data.observations import make_scans
 from benchmark.protocols.completion import decode_output, fit, observation_batch
+from benchmark.protocols.step_rules import plateau_rule
 from benchmark.protocols.unit_data import UnitData
 from benchmark.core.surface_sampling import sample_surface
 from benchmark.core.work_units import stable_seed
@@ -404,23 +405,6 @@ def optimiser_rule(spec: dict) -> str:
         raise ValueError(f"objective.optimiser: {value!r} is not an optimiser of the completion fit; "
                          f"choose one of {', '.join(OPTIMISERS)}")
     return value
-
-
-STEP_RULES = ("cosine", "plateau")  # objective.step_rule: versions 1-5 cosine over the profile's steps; v6 plateau
-
-
-def plateau_rule(spec: dict):
-    """The step rule of ``objective.step_rule`` (protocol v6: ``plateau``, with ``objective.plateau``'s
-    sizes; :class:`benchmark.protocols.step_rules.PlateauRule`), or None for versions 1-5's cosine
-    schedule over the profile's steps."""
-    from benchmark.protocols.step_rules import PlateauRule
-
-    obj = spec["objective"]
-    schedule = str(obj.get("step_rule", "cosine"))
-    if schedule not in STEP_RULES:
-        src = spec.get("_source") or f"benchmark/tables/{spec.get('name', '?')}.yaml"
-        raise ValueError(f"{src}: field 'objective.step_rule' is {schedule!r}; choose one of {', '.join(STEP_RULES)}")
-    return PlateauRule.from_spec(obj.get("plateau")) if schedule == "plateau" else None
 
 
 def multi_start_rule(spec: dict):

@@ -20,18 +20,25 @@ Modes (the grid's ``mode`` axis):
   encoder is given ``encode_motion(noisy rotations, translation)`` and its latents are decoded at the
   30 fps frames, with the rigid parameters it does not encode taken from the observation (root
   orientation: the noisy root; translation: the observed one); else the cell is n/a.
-- ``optimisation``: ``denoise_motion(..., mode="optimisation", iterations=profile steps)`` where the
-  adapter has it; else the prior's latents and its free rigid parameters are fitted to the noisy
-  joints and markers (:func:`benchmark.protocols.motion_fit.fit_motion`: mean squared position error
-  over joints and markers in mm^2 + lambda_prior * prior term, Adam, cosine schedule, profile
-  steps), starting from the encoder's output where the prior has one, else from a prior sample.
+- ``optimisation``: ``denoise_motion(..., mode="optimisation", iterations=objective.denoiser_iterations)``
+  where the adapter has it (its paper's count; version 1: the profile's steps); else the prior's
+  latents and its free rigid parameters are fitted to the noisy joints and markers
+  (:func:`benchmark.protocols.motion_fit.fit_motion`: mean squared position error over joints and
+  markers in mm^2 + lambda_prior * prior term, Adam; version 2: the plateau rule, each sequence to its
+  plateau under the profile's cap, its fit diagnostics stored; version 1: a cosine schedule over the
+  profile's steps), starting from the encoder's output where the prior has a learned one, from the
+  noisy motion itself where its ``encode_motion`` is an exact change of representation
+  (``no-prior``, version 2: the paper initialises from the noisy SMPL parameters; version 1 started
+  it from a prior sample), else from a prior sample.
 
 Metrics per sequence (sums over its frames; the table divides by frames): ``v2v_m`` (every vertex
 vs the clean ground truth), ``obs_v2v_m`` (the noisy observation's own V2V, a reference),
-``mpjpe_m``, ``accel`` / ``gt_accel`` / ``obs_accel`` (mean joint acceleration magnitude of the
-output / the ground truth / the noisy observation, m/s^2 (SI), stored as the sequence mean times its
-frame count), ``s_per_frame`` (the prior's measured seconds for the unit / (B * frames), stored as
-the unit seconds / B; the unit result names the device in ``device`` and ``device_name``).
+``mpjpe_m``, ``accel_mps2`` / ``gt_accel_mps2`` / ``obs_accel_mps2`` (mean joint acceleration
+magnitude of the output / the ground truth / the noisy observation, m/s^2, stored as the sequence
+mean times its frame count; ``accel`` is judged by its distance to ``gt_accel``), ``time_per_frame_s``
+(the prior's measured seconds for the unit / (B * frames), stored as the unit seconds / B; the unit
+result names the device in ``device`` and ``device_name``). Version 1 named them ``accel``,
+``gt_accel``, ``obs_accel`` and ``s_per_frame``.
 """
 
 from __future__ import annotations
@@ -48,11 +55,12 @@ from benchmark.protocols.motion_fit import (
     is_interpolation_baseline, joints_of, load_table_motions, objective_value, unit_result, v2v_sums,
 )
 from benchmark.core.work_units import na_result, stable_seed
-from priors.base import MotionDenoiser, has_motion_encoder
+from benchmark.protocols.step_rules import plateau_rule
+from priors.base import MotionDenoiser, MotionEncoder, has_motion_encoder
 
 MODES = ("regression", "optimisation")
-NO_REGRESSION = ("regression needs one forward pass: the prior has neither denoise_motion nor an encoder "
-                 "(encode_motion)")
+NO_REGRESSION = ("regression needs one forward pass: the prior has neither denoise_motion nor a learned encoder "
+                 "(encode_motion with has_encoder)")
 
 
 class DenoiseSource(MotionSource):
@@ -114,8 +122,16 @@ def make_source(spec: dict, body, motions_by_id: dict, seed: int) -> DenoiseSour
 def na_reason(spec: dict, adapter) -> str | None:
     if is_interpolation_baseline(adapter):
         return ("the SLERP baseline belongs to the in-betweening table; the noisy observation's own error is "
-                "the obs_v2v_mm column")
+                "the obs_v2v_mm column of the other priors' rows")
     return None
+
+
+def denoiser_iterations(spec: dict, steps: int) -> int:
+    """Iterations of a prior's own ``denoise_motion`` optimisation: ``objective.denoiser_iterations``
+    (its paper's count, version 2), at most the profile's steps (the smoke profile's few); version 1:
+    the profile's steps."""
+    value = (spec.get("objective") or {}).get("denoiser_iterations")
+    return int(steps) if value is None else min(int(value), int(steps))
 
 
 def mode_na_reason(adapter, mode: str) -> str | None:
@@ -166,10 +182,11 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: DenoiseSour
     timer = Timer(device)
     info: dict = {"history": []}
     if isinstance(adapter, MotionDenoiser):
-        method = f"denoise_motion(mode={mode!r})"
+        method = f"denoise_motion(mode={mode!r}" + (f", {denoiser_iterations(spec, steps)} iterations)" if mode != "regression" else ")")
+        iterations = 0 if mode == "regression" else denoiser_iterations(spec, steps)
         with timer:
             res = adapter.denoise_motion(rotations=noisy_rot, trans=obs_trans, timestamps=clean.timestamps, mode=mode,
-                           iterations=0 if mode == "regression" else steps)
+                                         iterations=iterations)
         rot, trans = _as_motion(res, obs_trans, adapter.name, B, T)
     elif mode == "regression":
         method = "encode_motion -> decode"
@@ -180,12 +197,22 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: DenoiseSour
         with timer:
             rot, trans = decode_parameters(state, clean.timestamps)
     else:
-        init = "encoder" if has_motion_encoder(adapter) else "sample"
-        method = f"fit (init {init}, {steps} steps)"
+        rule = plateau_rule(spec)
+        latents = None
+        if has_motion_encoder(adapter):
+            init = "encoder"
+        elif isinstance(adapter, MotionEncoder):  # an exact change of representation (no-prior): the noisy motion
+            init = "observation"
+            with torch.no_grad():
+                latents = adapter.encode_motion(noisy_rot, obs_trans, clean.timestamps)
+        else:
+            init = "sample"
+        method = f"fit (init {init}, " + (f"plateau rule, cap {steps} steps)" if rule else f"{steps} steps)")
         with timer:
             state, info = fit_motion(adapter, body, targets, steps=steps, lr=float(objective_value(spec, "lr")),
                                      lambda_prior=float(objective_value(spec, "lambda_prior")), generator=g,
-                                     device=device, init=init)
+                                     device=device, init="encoder" if init == "encoder" else "sample", latents=latents,
+                                     rule=rule)
             rot, trans = decode_parameters(state, clean.timestamps)
     t_eval = time.perf_counter()
     v2v = v2v_sums(body, clean.shapes, rot, trans, clean.rotations, clean.trans)
@@ -195,9 +222,12 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: DenoiseSour
     accel = mean_acceleration(joints, clean.fps)
     gt_accel = mean_acceleration(clean.joints, clean.fps)
     obs_accel = mean_acceleration(obs.joints.to(clean.joints), clean.fps)
+    diagnostics = info.get("diagnostics")
     per_seq = [
-        {"frames": T, "sums": {"v2v_m": v2v[b], "obs_v2v_m": obs_v2v[b], "mpjpe_m": err[b], "accel": accel[b] * T,
-                               "gt_accel": gt_accel[b] * T, "obs_accel": obs_accel[b] * T, "s_per_frame": timer.seconds / B}}
+        {"frames": T, "sums": {"v2v_m": v2v[b], "obs_v2v_m": obs_v2v[b], "mpjpe_m": err[b], "accel_mps2": accel[b] * T,
+                               "gt_accel_mps2": gt_accel[b] * T, "obs_accel_mps2": obs_accel[b] * T,
+                               "time_per_frame_s": timer.seconds / B},
+         **({"diagnostics": diagnostics[b]} if diagnostics else {})}
         for b in range(B)
     ]
     eval_s = time.perf_counter() - t_eval

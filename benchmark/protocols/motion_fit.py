@@ -21,8 +21,11 @@ Three parts:
      + w_rot * mean over observed frames and joints of |R - R_obs|_F^2  (when rotations are targets)
      + lambda_prior * prior_term(latents)
 
-   Variables: the latents and the free rigid parameters (never the shape). Adam, cosine decay of the
-   learning rate to ``lr_final_fraction`` of it.
+   Variables: the latents and the free rigid parameters (never the shape). Adam: under the plateau
+   rule (``objective.step_rule: plateau``, denoise and inbetween from version 2) each sequence
+   descends until its objective plateaus, the profile's steps a cap, and its fit diagnostics are
+   stored (``converged`` per sequence); else a cosine decay of the learning rate to
+   ``lr_final_fraction`` of it over the profile's steps.
 
    Initialisation: latents from ``encode_motion`` of the observed motion (``init="encoder"``), from
    the adapter's ``init_latents`` (``init="sample"``: a prior sample), or given. The rigid parameters
@@ -49,7 +52,7 @@ import torch
 from benchmark.core.motion_posing import body_float
 from benchmark.protocols.latent_checks import prior_values
 from benchmark.protocols.fit_state import FitState, body_parameters, init_state, set_rigid
-from benchmark.protocols.step_rules import optimise
+from benchmark.protocols.step_rules import optimise, optimise_to_plateau
 from benchmark.core.skeleton import NUM_JOINTS
 from priors.base import FitBatch, InterpolationBaseline, has_motion_encoder
 
@@ -141,8 +144,22 @@ def load_table_motions(spec: dict, data, body, longest_window_s: float | None = 
     for the window."""
     from benchmark.data.table_data import load_motions
 
-    _, start, window = table_window(spec)
-    return load_motions(data, start + (longest_window_s or window), body)
+    fps, start, window = table_window(spec)
+    needed = start + (longest_window_s or window)
+    motions = load_motions(data, needed, body)
+    # resampled to the table's rate a motion covers its first to its last frame: the window's last
+    # frame must lie within it (a 2.0 s motion at 24 fps ends at 1.958 s, before a 30 fps window's 1.967 s)
+    short = [k for k, m in motions.items() if m.span + 1e-6 < needed - 1.0 / fps]
+    if short and len(short) == len(motions):
+        raise ValueError(f"{'--data ' + str(data) if data is not None else 'the test split'}: no motion spans the "
+                         f"{needed - 1.0 / fps:.3f} s from its first to its last frame that a "
+                         f"{needed:.1f} s window at {fps:g} fps needs (e.g. {short[0]}: {motions[short[0]].span:.3f} s); "
+                         "give longer motions")
+    if short:
+        log.warning("skipping %d motions whose frames span less than the %.3f s a %.1f s window at %g fps needs "
+                    "(its last frame must lie within the motion): %s", len(short), needed - 1.0 / fps, needed, fps,
+                    short[:5])
+    return {k: m for k, m in motions.items() if k not in short}
 
 
 class MotionSource:
@@ -305,27 +322,43 @@ def data_term(body, rest, rot: torch.Tensor, trans: torch.Tensor, targets: Motio
 def fit_motion(adapter, body, targets: MotionTargets, steps: int, lr: float, lambda_prior: float,
                generator: torch.Generator, device, init: str = "sample", latents: dict | None = None,
                rotation_weight_mm2: float = 0.0, lr_final_fraction: float = 0.1,
-               callback=None) -> tuple[FitState, dict]:
+               callback=None, rule=None) -> tuple[FitState, dict]:
     """Fit the prior's latents and the free rigid parameters to ``targets`` (module docstring).
 
-    ``steps`` 0 returns the initial state. Returns (state, {"history": [...]}); decode the result
-    at any timestamps with :func:`decode_parameters`.
+    ``rule``: a :class:`~benchmark.protocols.step_rules.PlateauRule` (``objective.step_rule:
+    plateau``): each sequence descends until its objective plateaus, ``steps`` is the cap; None:
+    the cosine schedule over ``steps``. ``steps`` 0 returns the initial state. Returns (state,
+    {"history": [...], "diagnostics": per-sequence fit diagnostics, with the plateau rule}); decode
+    the result at any timestamps with :func:`decode_parameters`.
     """
     state = init_motion_state(adapter, body, targets, generator, device, init=init, latents=latents)
     with torch.no_grad():
         rest = body.prepare(state.shape())
     params = free_parameters(state)
-    history = []
+    history, out = [], {}
     if steps > 0 and params:
+        objective, data_trace = [], []
+
         def step_loss(step):
             rot, trans = body_parameters(state, targets.timestamps, observed=True)
             data = data_term(body, rest, rot, trans, targets, rotation_weight_mm2)
             prior = prior_values(adapter, state.latents)
-            return (data + lambda_prior * prior).sum(), lambda: {"data_mm2": float(data.detach().mean()),
-                                                                  "prior": float(prior.detach().mean())}
+            total = data + lambda_prior * prior
+            objective.append(total.detach())
+            data_trace.append(data.detach())
+            return total.sum(), lambda: {"data_mm2": float(data.detach().mean()), "prior": float(prior.detach().mean())}
 
-        history = optimise(adapter.name, params, steps, lr, lr_final_fraction, step_loss, callback=callback)
-    return state, {"history": history}
+        if rule is None:
+            history = optimise(adapter.name, params, steps, lr, lr_final_fraction, step_loss, callback=callback)
+        else:
+            from benchmark.core.fit_diagnostics import sequence_diagnostics
+
+            history, plateau = optimise_to_plateau(adapter.name, params, steps, lr, lr_final_fraction, step_loss,
+                                                   objective, rule, callback=callback)
+            # the data term is a mean of squares (mm^2): its root (mm) is what the diagnostics report
+            out["diagnostics"] = sequence_diagnostics(torch.stack(data_trace).clamp_min(0).sqrt(), plateau=plateau)
+            out["steps"] = int(plateau["steps"])
+    return state, {"history": history, **out}
 
 
 @torch.no_grad()
@@ -367,6 +400,12 @@ def v2v_sums(body, shapes, rot_a, trans_a, rot_b, trans_b) -> torch.Tensor:
         vb = body.skin(rest, rot_b[:, sl], trans_b[:, sl]).vertices
         total += (va - vb).norm(dim=-1).mean(-1).double().sum(1)
     return total
+
+
+def pelvis_centred(joints: torch.Tensor) -> torch.Tensor:
+    """(..., 22, 3) joints relative to the pelvis (joint 0) of their frame: the local pose VIBE's
+    metrics score (HM-VAE's Tables 2 and 3 use them)."""
+    return joints - joints[..., :1, :]
 
 
 def global_rotations(rotations: torch.Tensor) -> torch.Tensor:
@@ -455,6 +494,6 @@ def objective_value(spec: dict, key: str, default=None):
 __all__ = [
     "CleanBatch", "MotionSource", "MotionTargets", "Timer", "data_term", "decode_parameters",
     "device_name", "fit_motion", "free_parameters", "global_rotations", "init_motion_state",
-    "is_interpolation_baseline", "joints_of", "load_table_motions", "motion_shapes", "quaternion_loss",
+    "is_interpolation_baseline", "joints_of", "load_table_motions", "motion_shapes", "pelvis_centred", "quaternion_loss",
     "set_rigid_from_observation", "table_window", "tensor_fingerprint", "unit_result", "v2v_sums",
 ]

@@ -110,7 +110,8 @@ import time
 import torch
 
 from benchmark.core.fit_diagnostics import sequence_diagnostics
-from benchmark.protocols.completion_unit import evaluate, loss_vertex_count, plateau_rule
+from benchmark.protocols.completion_unit import evaluate, loss_vertex_count
+from benchmark.protocols.step_rules import plateau_rule
 from benchmark.protocols.sls_cycles import align_first_anchor, cut_cycles
 from benchmark.protocols.sls_data import Observation, SlsData, SlsUnitData, check_same_cells, observe
 from benchmark.protocols.sls_fit import decode_anchors, fit_sls, uses_anchor_decoder

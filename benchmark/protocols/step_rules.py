@@ -269,6 +269,21 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
     return history, out
 
 
+STEP_RULES = ("cosine", "plateau")  # objective.step_rule: versions 1-5 cosine over the profile's steps; v6 plateau
+
+
+def plateau_rule(spec: dict):
+    """The step rule of ``objective.step_rule`` (``plateau``, with ``objective.plateau``'s sizes:
+    :class:`PlateauRule`; table1 from version 6, sls from 4, denoise and inbetween from 2), or None
+    for the cosine schedule over the profile's steps (``cosine``, the default)."""
+    obj = spec["objective"]
+    schedule = str(obj.get("step_rule", "cosine"))
+    if schedule not in STEP_RULES:
+        src = spec.get("_source") or f"benchmark/tables/{spec.get('name', '?')}.yaml"
+        raise ValueError(f"{src}: field 'objective.step_rule' is {schedule!r}; choose one of {', '.join(STEP_RULES)}")
+    return PlateauRule.from_spec(obj.get("plateau")) if schedule == "plateau" else None
+
+
 def cap_independent_problem(objective) -> str | None:
     """Why a fit under the rules ``objective`` (a spec's section) could depend on the step cap
     before reaching it, or None where a fit whose every sequence converged is the same computation

@@ -33,6 +33,9 @@ class SequenceDiag:
         return self.backwards_fraction > BACKWARDS_FRACTION
 
 
+FITTED_MOTION_PROTOCOLS = ("completion", "sls")  # the protocols whose units store their fitted motions (.npz)
+
+
 @dataclass
 class CellReport:
     table: str
@@ -79,6 +82,11 @@ def diagnose(run, cr: CellReport, img_dir: Path, sequences: int, fmt: str, body_
         cr.no_animation = "no unit file for this cell under units/"
         return
     missing = [u["unit_id"] for u in cr.units if not run.npz_path(u).exists()]
+    protocol = next((t.get("protocol") for t in run.tables if t.get("table") == cr.table), None)
+    if len(missing) == len(cr.units) and protocol not in (None, *FITTED_MOTION_PROTOCOLS):
+        cr.no_animation = (f"no animation: the {protocol} protocol stores no fitted motion (only the completion "
+                           "protocols, table1 and sls, keep theirs)")
+        return
     if len(missing) == len(cr.units):
         cr.no_animation = ("animation unavailable: this run stored no fitted motion for this cell (no "
                            f"units/{missing[0]}.npz; units run before the harness kept it, or a protocol that does not "

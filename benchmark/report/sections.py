@@ -41,10 +41,10 @@ def about_html(table: dict) -> str:
 
 def metric_table(table: dict, metric: str, reports: dict, grid_keys: list) -> str:
     from benchmark.report.plots import paper_rows
-    from benchmark.run.writers import (ARROWS, SIGNIFICANT_MARK, cell_label, cell_text, format_number, has_intervals,
+    from benchmark.run.writers import (SIGNIFICANT_MARK, direction_text, cell_label, cell_text, format_number, has_intervals,
                                        interval_note, metric_label, significant_win)
 
-    better = next((m.get("better") for m in table["metrics"] if m["name"] == metric), None)
+    spec = next((m for m in table["metrics"] if m["name"] == metric), {})
     cells = table["rows"][0]["cells"]
     head = "".join(f"<th>{esc(cell_label(c, grid_keys))}</th>" for c in cells)
     body = []
@@ -70,7 +70,7 @@ def metric_table(table: dict, metric: str, reports: dict, grid_keys: list) -> st
     for prior, values in paper_rows(table, metric).items():
         tds = "".join(f"<td>{'' if v is None else esc(format_number(v, metric))}</td>" for v in values)
         body.append(f'<tr class="paper"><th>{esc(prior)} (paper)</th>{tds}</tr>')
-    arrow = ARROWS.get(better, "")
+    arrow = direction_text(spec) if spec else ""
     note = f'<p class="note">{esc(interval_note(table).replace("`", ""))}</p>' if has_intervals(table) else ""
     return (f'<h3>{esc(metric_label(metric))} {arrow}</h3><table class="results"><thead><tr><th>prior</th>{head}</tr>'
             f'</thead><tbody>{"".join(body)}</tbody></table>{note}')

@@ -55,7 +55,7 @@ def format_csv(table: Mapping) -> str:
                 std = cell.get(f"{name}_std")
                 ci = cell.get(f"{name}_ci95") if reason is None else None
                 writer.writerow([table["table"], table["protocol_version"], table["profile"], row["prior"],
-                                 *(cell[k] for k in grid_keys), name, metric_unit(name) or "", value,
+                                 *(cell[k] for k in grid_keys), name, (metric_unit(name) or "").replace("mps2", "m/s^2"), value,
                                  "" if reason is not None or std is None else repr(float(std)),
                                  cell.get("sequences", ""), cell.get("frames", ""), reason or "",
                                  *((_csv_number(ci[0]), _csv_number(ci[1])) if ci is not None else ("", "")),

@@ -262,14 +262,19 @@ def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], tabl
     for j, coords in enumerate(cells):
         cell_json = canonical_json(coords)
         for m in metrics:
-            name = m["name"]
+            name, ref_name = m["name"], m.get("reference")
+            if m["better"] == "none":  # a reference figure: never ranked
+                continue
             have = {row["prior"]: row["cells"][j] for row in rows
                     if not row["cells"][j].get("na_reason") and row["cells"][j].get(name) is not None
-                    and name in (row["cells"][j].get("per_sequence") or {})}
+                    and name in (row["cells"][j].get("per_sequence") or {})
+                    and (ref_name is None or ref_name in row["cells"][j]["per_sequence"])}
             if not have:
                 continue
-            pick = min if m["better"] == "lower" else max
-            best = pick(have, key=lambda p: have[p][name])  # ties: the first row
+            if ref_name is not None:  # closest to the reference: compared by the distance to it
+                best = min(have, key=lambda p: abs(have[p][name] - have[p][ref_name]))
+            else:
+                best = (min if m["better"] == "lower" else max)(have, key=lambda p: have[p][name])  # ties: the first row
             for prior, cell in have.items():
                 refs = {}
                 if prior != NO_PRIOR and NO_PRIOR in have:
@@ -279,11 +284,21 @@ def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], tabl
                 comparisons = {}
                 for role, ref in refs.items():
                     rng = np.random.default_rng(stable_seed("paired", table_seed, prior, ref, cell_json, name))
-                    comparison = _paired(cell["per_sequence"], have[ref]["per_sequence"], name, m["better"], ref, rng)
+                    comparison = _paired(_distances(cell["per_sequence"], name, ref_name),
+                                         _distances(have[ref]["per_sequence"], name, ref_name), name,
+                                         "lower" if ref_name else m["better"], ref, rng)
                     if comparison is not None:
                         comparisons[role] = comparison
                 if comparisons:
                     cell.setdefault("paired", {})[name] = comparisons
+
+
+def _distances(per_sequence: Mapping, metric: str, reference: str | None) -> Mapping:
+    """``per_sequence`` with ``metric``'s values replaced by their distance to ``reference``'s (a
+    ``better: closest`` metric's paired comparison is of that distance); as it is without one."""
+    if reference is None:
+        return per_sequence
+    return {**per_sequence, metric: [abs(v - r) for v, r in zip(per_sequence[metric], per_sequence[reference])]}
 
 
 def _paired(a: Mapping, b: Mapping, metric: str, better: str, vs: str, rng: np.random.Generator) -> dict | None:

@@ -39,14 +39,21 @@ METRIC_NAMES = {
     "chamfer": "Chamfer",
     "chamfer_surface": "Surface Chamfer",
     "mpjpe": "MPJPE",
+    "mpjpe_local": "MPJPE, pelvis-centred",
     "pa_mpjpe": "PA-MPJPE",
     "v2v": "V2V",
     "accel": "Acceleration",
     "accer": "Acceleration error",
     "root": "Root error",
     "gt_travel": "Ground-truth root travel",
+    "gt_accel": "Ground-truth acceleration",
+    "obs_accel": "Observation's acceleration",
+    "obs_v2v": "Observation's V2V",
+    "time_per_frame": "Time per frame",
+    "quat_loss": "Quaternion loss",
 }
-UNIT_SUFFIXES = ("mm", "cm", "m", "deg", "rad", "s")
+UNIT_SUFFIXES = ("mps2", "mm", "cm", "m", "deg", "rad", "s")
+UNIT_TEXT = {"mps2": "m/s²"}  # how a unit suffix is written in a label (the CSV: ASCII, m/s^2)
 # How a grid axis value is shown in a column label.
 AXIS_LABELS = {"points": "{} pts", "fps": "{} fps", "sigma": "σ = {}", "gap": "gap {}", "frames": "{} frames", "sweep": "{}",
                "mode": "{}"}
@@ -69,7 +76,18 @@ def metric_label(name: str) -> str:
     unit = metric_unit(name)
     base = name[: -len(unit) - 1] if unit else name
     text = METRIC_NAMES.get(base, base.replace("_", " ").capitalize())
-    return f"{text} ({unit})" if unit else text
+    return f"{text} ({UNIT_TEXT.get(unit, unit)})" if unit else text
+
+
+def direction_text(metric: Mapping, tex: bool = False) -> str:
+    """What follows a metric's heading: its arrow, or for ``better: closest`` the metric it is judged
+    against, for ``better: none`` that it is a reference (:func:`benchmark.core.work_units.metric_specs`)."""
+    better = metric.get("better", "lower")
+    if better == "closest":
+        return f"(closest to {metric_label(metric['reference'])} is best)"
+    if better == "none":
+        return "(reference, not ranked)"
+    return (TEX_ARROWS if tex else ARROWS)[better]
 
 
 def cell_label(cell: Mapping, grid_keys: Sequence[str]) -> str:
@@ -273,7 +291,7 @@ def format_markdown(table: Mapping) -> str:
 
     for metric in _metrics_in_order(table):
         name = metric["name"]
-        lines += ["", f"## {metric_label(name)} {ARROWS[metric['better']]}", ""]
+        lines += ["", f"## {metric_label(name)} {direction_text(metric)}", ""]
         if metric.get("description"):
             lines += [metric["description"][0].upper() + metric["description"][1:] + ".", ""]
         lines.append("| Prior | " + " | ".join(labels) + " |")
@@ -379,7 +397,7 @@ def format_latex(table: Mapping) -> str:
     if warning:
         out.append(f"% WARNING: {warning}")
     out += [rf"\begin{{tabular}}{{l{'r' * n}}}", r"\toprule",
-            rf" & \multicolumn{{{n}}}{{c}}{{{tex_escape(metric_label(name))} {TEX_ARROWS[metric['better']]}}} \\",
+            rf" & \multicolumn{{{n}}}{{c}}{{{tex_escape(metric_label(name))} {direction_text(metric, tex=True)}}} \\",
             rf"\cmidrule(lr){{2-{n + 1}}}",
             "Prior & " + " & ".join(tex_escape(cell_label(c, grid_keys)) for c in cells) + r" \\",
             r"\midrule"]

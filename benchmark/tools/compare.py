@@ -7,9 +7,11 @@ a number in the other, or the tables differ in what they measure (table, protoco
 profile). Differences in seed, device or profile sizes, and cells whose input fingerprint changed
 ("the input changed", as opposed to "the model changed"), are reported but do not fail by themselves.
 
-Default tolerances (:data:`DEFAULT_TOLERANCES`) go by the unit suffix of the metric name
-(``*_mm``: 0.5 mm). ``*_std`` companions are compared only when a tolerance names them. A metric
-with no default and no ``--tol`` fails with a message saying how to give one.
+Default tolerances: the table's own for a metric (its spec's ``tolerance``), else by the unit
+suffix of the metric name (:data:`DEFAULT_TOLERANCES`; ``*_mm``: 0.5 mm). A metric the table marks
+``timing: true`` (a measured time) is reported, never failing, unless ``--tol`` names it.
+``*_std`` companions are compared only when a tolerance names them. A metric with no default and
+no ``--tol`` fails with a message saying how to give one.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from benchmark.core.work_units import TABLE_FORMAT_VERSION, grid_axes
 from benchmark.run.writers import cell_label
 
 # unit suffix -> default tolerance, in that unit
-DEFAULT_TOLERANCES = {"_mm": 0.5, "_cm": 0.05, "_m": 0.0005, "_deg": 0.5, "_rad": 0.01}
+DEFAULT_TOLERANCES = {"_mm": 0.5, "_cm": 0.05, "_m": 0.0005, "_deg": 0.5, "_rad": 0.01, "_mps2": 0.05}
 # table fields that must agree for the numbers to be comparable
 MUST_MATCH = ("table", "protocol_version", "profile")
 # table fields whose difference is reported as a note
@@ -164,9 +166,11 @@ def compare_tables(a: Mapping, b: Mapping, tolerances: Mapping[str, float] | Non
     unknown = sorted(set(tolerances) - known)
     if unknown:
         raise ValueError(f"--tol names unknown metric(s) {unknown}; the tables have: {', '.join(sorted(known))}")
+    specs = {m["name"]: m for m in list(b["metrics"]) + list(a["metrics"])}  # A's entry wins
+    timings = {n for n, m in specs.items() if m.get("timing")}
     compared = []
     for name in names:
-        compared.append((name, tolerances.get(name, default_tolerance(name))))
+        compared.append((name, tolerances.get(name, specs[name].get("tolerance", default_tolerance(name)))))
         if f"{name}_std" in tolerances:
             compared.append((f"{name}_std", tolerances[f"{name}_std"]))
 
@@ -197,7 +201,9 @@ def compare_tables(a: Mapping, b: Mapping, tolerances: Mapping[str, float] | Non
                 row["status"], row["note"] = "n/a mismatch", f"A: {ra}" if va is None else f"B: {rb}"
             else:
                 row["diff"] = vb - va
-                if tol is None:
+                if metric in timings and metric not in tolerances:  # a measured time: reported, never failing
+                    row["status"], row["note"] = "note", "a measured time (timing: true); --tol NAME=VALUE compares it"
+                elif tol is None:
                     row["status"] = "no tolerance"
                     row["note"] = f"no default tolerance for {metric!r}; pass --tol {metric}=VALUE (in its unit)"
                 else:

@@ -204,7 +204,8 @@ def _complete(args, out: Path, earlier: list[str], t_begin: float) -> dict:
     from benchmark.run.catalog import get_profile, load_table_spec
     from benchmark.core.motion import Motion
     from benchmark.protocols.completion import decode_output, fit, observation_batch
-    from benchmark.protocols.completion_unit import latent_init_rule, loss_vertex_count, plateau_rule, start_search_rule
+    from benchmark.protocols.completion_unit import latent_init_rule, loss_vertex_count, start_search_rule
+    from benchmark.protocols.step_rules import plateau_rule
     from benchmark.run.registry import make_adapter
     from benchmark.synthetic.scan_set import write_ply_mesh
 

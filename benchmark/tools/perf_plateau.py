@@ -44,6 +44,7 @@ def plateau_descent_compare(prior: str = "sequential-primitives", points: int = 
     the committed table1 rules, evaluating the whole batch at every step and keeping the held
     sequences; the steps, each sequence's stop and the largest difference of the final data terms."""
     from benchmark.protocols import completion_unit as cu
+    from benchmark.protocols.step_rules import plateau_rule
     from benchmark.protocols.completion import fit
     from benchmark.run.registry import make_adapter
 
@@ -58,7 +59,7 @@ def plateau_descent_compare(prior: str = "sequential-primitives", points: int = 
                       lambda_prior=float(obj["lambda_prior"]), generator=torch.Generator().manual_seed(0), device="cpu",
                       loss_vertices=cu.loss_vertex_count(profile), facing=cu.facing_rule(spec),
                       shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=cu.latent_init_rule(spec),
-                      start_search=cu.start_search_rule(spec), plateau=cu.plateau_rule(spec),
+                      start_search=cu.start_search_rule(spec), plateau=plateau_rule(spec),
                       callback=lambda step, loss: stamps.append(CLOCK()), keep_held=keep)
         runs[form] = {"s": stamps[-1] - stamps[0], "steps": info["plateau"]["steps"],
                       "descent_steps": info["plateau"]["descent_steps"], "final_data_mm": info["data_trace"][-1].double()}
