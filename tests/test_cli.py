@@ -1,6 +1,7 @@
 """The command line: help, list, conformance kit, describe, error paths."""
 
 import pytest
+from pathlib import Path
 
 from benchmark.cli import main
 from benchmark.run.registry import get_prior_class, register, unregister
@@ -33,6 +34,21 @@ def test_check_prior_passes_for_no_prior(capsys):
     assert main(["check-prior", "no-prior"]) == 0
     out = capsys.readouterr().out
     assert "FAIL" not in out and out.strip().endswith("PASS")
+
+
+def test_check_prior_takes_runs_name_equals_path_form_of_weights(tmp_path, capsys):
+    """``--weights NAME=PATH`` (run's form, as docs/real-data.md shows it) is this prior's PATH; another
+    prior's name is refused; a file name holding '=' (VPoser's snapshots) stays a plain path."""
+    from benchmark.run.registry import registry
+
+    weights = str(registry()["vposer-slerp"].load().default_weights)
+    assert main(["check-prior", "vposer-slerp", "--weights", f"vposer-slerp={weights}"]) == 0
+    capsys.readouterr()
+    assert main(["check-prior", "vposer-slerp", "--weights", f"hmvae={weights}"]) == 2
+    assert "names prior 'hmvae', but the prior checked is 'vposer-slerp'" in capsys.readouterr().err
+    odd = tmp_path / "V02_05_epoch=13_val_loss=0.03.pt"
+    odd.write_bytes(Path(weights).read_bytes())
+    assert main(["check-prior", "vposer-slerp", "--weights", str(odd)]) == 0
 
 
 def test_describe_prints_parameter_count(capsys):

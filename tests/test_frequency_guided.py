@@ -346,3 +346,28 @@ def test_tiny_training_decreases_loss_and_writes(tmp_path):
     assert torch.allclose(a.network.rest_joints, net.rest_joints, atol=1e-3)
     with pytest.raises(FileExistsError, match="--force"):
         FrequencyGuidedPrior.train_embedded(out_dir=tmp_path)
+
+
+def test_vposer_v02_05_given_for_v1_is_named_not_called_unsafe(official, tmp_path, monkeypatch):
+    """VPoser V02_05's Lightning checkpoint (with its pickled callback class) in place of v1.0's
+    TR00_E096.pt: the error says what the file is, not that it is unsafe to open."""
+    import sys
+    import types
+
+    from priors.frequency_guided import checkpoint
+
+    module = types.ModuleType("pytorch_lightning.callbacks.model_checkpoint")
+
+    class ModelCheckpoint:
+        pass
+
+    ModelCheckpoint.__module__, ModelCheckpoint.__qualname__ = module.__name__, "ModelCheckpoint"
+    module.ModelCheckpoint = ModelCheckpoint
+    for name in ("pytorch_lightning", "pytorch_lightning.callbacks", module.__name__):
+        monkeypatch.setitem(sys.modules, name, module if name == module.__name__ else types.ModuleType(name))
+    v2 = tmp_path / "V02_05_epoch=13_val_loss=0.03.ckpt"
+    torch.save({"state_dict": {"vp_model.encoder_net.1.weight": torch.zeros(3)}, "callbacks": {ModelCheckpoint: {}}}, v2)
+    for name in ("pytorch_lightning", "pytorch_lightning.callbacks", module.__name__):
+        monkeypatch.delitem(sys.modules, name)
+    with pytest.raises(KeyError, match=r"this is VPoser V02_05: Xu et al.'s prior needs VPoser v1.0, TR00_E096.pt"):
+        checkpoint._load_paper(f"{official['prior_file']},{v2}")

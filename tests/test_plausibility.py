@@ -335,10 +335,14 @@ def test_shape_for_body_checks_and_keeps_plausible_shapes_bit_for_bit():
     smpl = types.SimpleNamespace(name="smpl-neutral", model_type="smpl", shape_dim=10)
     m = motion(shape=torch.rand(6), body="anny")
     assert torch.equal(shape_for_body(m, anny).shape, m.shape)
-    betas = motion(shape=torch.randn(16), body="smplh")
+    betas = motion(shape=torch.randn(16), body="smpl")
     assert torch.equal(shape_for_body(betas, smpl).shape, betas.shape[:10])
-    short = motion(shape=torch.randn(8), body="smplx")
+    short = motion(shape=torch.randn(8), body="smpl")
     assert torch.equal(shape_for_body(short, smpl).shape, torch.cat([short.shape, torch.zeros(2)]))
+    # SMPL, SMPL-H and SMPL-X each have their own shape space: another kind's betas give the neutral shape
+    for src in ("smplh", "smplx"):
+        moved = shape_for_body(motion(shape=torch.randn(16), body=src), smpl)
+        assert moved.shape is None and moved.body is None
     with pytest.raises(ValueError, match=r"data/a\.npz: field 'shape' has 300 values"):
         shape_for_body(motion(shape=torch.rand(300), body="anny"), anny, "data/a.npz")
     other = shape_for_body(motion(shape=torch.rand(300), body="anny"), smpl)  # another body's: neutral, as before

@@ -525,3 +525,43 @@ def test_unknown_kind_or_gender():
         resolve_body_model_file("mano")
     with pytest.raises(ValueError, match="unknown gender"):
         resolve_body_model_file("smpl", gender="other")
+
+
+def test_a_model_files_gender_names_the_body_and_a_contradiction_is_refused(tmp_path, monkeypatch):
+    """``smplh=.../male/model.npz`` is the male model, named so (it was called smplh-neutral); the
+    same file asked for as ``:neutral`` is refused, naming the file and the fix."""
+    from benchmark.body import get_body
+    from benchmark.body.resolve import file_gender
+
+    assert [file_gender(p) for p in ("r/smplh/male/model.npz", "SMPL_FEMALE.pkl", "SMPLX_NEUTRAL.npz", "x/model.npz")] \
+        == ["male", "female", "neutral", None]
+    male = write_npz(tmp_path / "root" / "smplh" / "male" / "model.npz", make_model("smplh", num_betas=16, per_joint=2))
+    monkeypatch.delenv(ENV_VAR, raising=False)
+    assert get_body(f"smplh={male}").name == "smplh-male"
+    assert get_body(f"smplh={male}:male").name == "smplh-male"
+    with pytest.raises(ValueError, match=r"male/model\.npz: its name says the male model, but the body asked for is "
+                                         r"smplh:neutral; point to the neutral file, or drop ':neutral'"):
+        get_body(f"smplh={male}:neutral")
+
+
+def test_a_pkl_reads_where_numpy_has_no_numpy_core_module_yet(tmp_path, monkeypatch):
+    """numpy 1.24-1.26 (allowed by the project) has ``numpy.core`` and no ``numpy._core``: an original
+    SMPL ``.pkl`` naming numpy's classes still reads (it failed with "No module named 'numpy._core'")."""
+    import importlib
+
+    from benchmark.body import smpl_files
+
+    model = make_model("smpl", num_betas=10, per_joint=2, seed=3)
+    path = write_chumpy_pkl(tmp_path / "SMPL_NEUTRAL.pkl", model, monkeypatch)
+    real = importlib.import_module
+
+    def numpy_1(name, *args):
+        if name.startswith("numpy._core"):
+            raise ModuleNotFoundError(f"No module named {name!r}")
+        if name.startswith("numpy.core"):
+            return real("numpy._core" + name[len("numpy.core"):])
+        return real(name, *args)
+
+    monkeypatch.setattr(smpl_files.importlib, "import_module", numpy_1)
+    data = read_body_model_file(path)
+    assert data.model_type == "smpl" and np.allclose(data.v_template, model["v_template"])

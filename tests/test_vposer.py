@@ -354,3 +354,18 @@ def test_wrong_embedded_files_are_named_for_what_they_are(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match=r"empty: a folder with no VPoser checkpoint in it"):
         checkpoint.load(tmp_path / "empty", "embedded")
+
+
+def test_a_file_with_none_of_vposers_keys_says_what_it_holds(tmp_path):
+    """Another prefix ('model.vp_model.') or another prior's file: the error lists the file's own keys
+    and, where they end in VPoser's, the prefix to strip (it listed only the 24 missing keys)."""
+    ckpt = _official_ckpt(_randomise(VPoser(), 3))
+    prefixed = tmp_path / "prefixed.ckpt"
+    torch.save({"state_dict": {f"model.{k}": v for k, v in ckpt["state_dict"].items()}}, prefixed)
+    with pytest.raises(ValueError, match=r"prefixed\.ckpt: holds none of VPoser's weights .* its keys: \['model\..*"
+                                         r"after the prefix 'model\.vp_model\.'"):
+        checkpoint.load(prefixed, "paper")
+    other = tmp_path / "gen_00250000.pt"
+    torch.save({"state_dict": {"enc.layers.0.weight": torch.zeros(2)}}, other)
+    with pytest.raises(ValueError, match=r"its keys: \['enc\.layers\.0\.weight'\]; is it another prior's checkpoint\?"):
+        checkpoint.load(other, "paper")

@@ -18,11 +18,12 @@ BODY_KINDS = {
 }
 
 
-def parse_body_spec(spec: str) -> tuple[str, str | None, str]:
-    """'smplh=/models:female' -> ('smplh', '/models', 'female')."""
+def parse_body_spec(spec: str) -> tuple[str, str | None, str | None]:
+    """'smplh=/models:female' -> ('smplh', '/models', 'female'); no ``:gender``: None (the neutral
+    model, or the gender a model file's name or folder says)."""
     kind, _, rest = spec.partition("=")
     kind = kind.strip().lower()
-    gender = "neutral"
+    gender = None
     path = rest or None
     if path and ":" in path.rsplit("/", 1)[-1]:
         path, _, gender = path.rpartition(":")

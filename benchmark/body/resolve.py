@@ -105,9 +105,19 @@ def resolve_body_model_file(kind: str, gender: str = "neutral", path: str | Path
     )
 
 
+def file_gender(file: str | Path) -> str | None:
+    """The gender a body-model file's name or folder says (``SMPL_MALE.pkl``, ``SMPLH_female.pkl``,
+    AMASS's ``male/model.npz``), or None."""
+    p = Path(file)
+    for word in (p.stem.lower().replace("-", "_").split("_")[-1], p.parent.name.lower()):
+        if word in ("male", "female", "neutral"):
+            return word
+    return None
+
+
 def load_body(
     kind: str,
-    gender: str = "neutral",
+    gender: str | None = None,
     path: str | Path | None = None,
     num_betas: int = 10,
     device: str | torch.device | None = None,
@@ -115,13 +125,21 @@ def load_body(
 ):
     """Resolve, read and build an :class:`~benchmark.body.smpl.SMPLBody`.
 
-    Raises ValueError if the file found holds another model type than ``kind``.
+    ``gender`` None: the neutral model, or for a file the gender its name or folder says
+    (:func:`file_gender`; the body is named for it). Raises ValueError if the file found holds
+    another model type than ``kind``, or its name says another gender than the one asked for.
     """
     from benchmark.body.smpl import SMPLBody
     from benchmark.body.smpl_files import read_body_model_file
 
-    kind, gender = _check(kind, gender)
+    asked = gender
+    kind, gender = _check(kind, gender or "neutral")
     file = resolve_body_model_file(kind, gender, path)
+    said = file_gender(file)
+    if said is not None and asked is not None and said != gender:
+        raise ValueError(f"{file}: its name says the {said} model, but the body asked for is {kind}:{gender}; "
+                         f"point to the {gender} file, or drop ':{gender}'")
+    gender = said or gender  # a file named for its gender names the body (smplh=.../male/model.npz -> smplh-male)
     data = read_body_model_file(file)
     if data.model_type != kind:
         raise ValueError(

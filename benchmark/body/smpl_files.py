@@ -135,7 +135,12 @@ class _ModelUnpickler(pickle.Unpickler):
             module = "numpy._core" + module[len("numpy.core"):]
         if f"{module}.{name}" not in MODEL_PICKLE_GLOBALS:
             raise _RefusedGlobal(f"{module}.{name}")
-        return getattr(importlib.import_module(module), name)
+        try:
+            return getattr(importlib.import_module(module), name)
+        except ModuleNotFoundError:  # numpy < 2 (the project allows 1.24): numpy._core is still numpy.core
+            if not module.startswith("numpy._core"):
+                raise
+            return getattr(importlib.import_module("numpy.core" + module[len("numpy._core"):]), name)
 
 
 def load_pickle_without_chumpy(path: str | Path) -> dict:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from benchmark.run.registry import make_adapter
+from benchmark.run.registry import make_adapter, registry
 
 
 def _cmd_check_prior(args) -> int:
@@ -13,6 +13,12 @@ def _cmd_check_prior(args) -> int:
 
     # input errors (an unknown prior, a weights file torch cannot read) are errors, exit 2, not a
     # conformance FAIL: construct once up front
+    named, _, path = (args.weights or "").partition("=")
+    if path and named.strip() in registry():  # the NAME=PATH form of run's --weights (a file name may hold '=')
+        if named.strip() != args.name:
+            raise ValueError(f"--weights {args.weights}: names prior {named.strip()!r}, but the prior checked is "
+                             f"{args.name!r}; give --weights PATH (or {args.name}=PATH)")
+        args.weights = path
     make_adapter(args.name, size=args.size, weights=args.weights, device="cpu")
     ok = check_prior(args.name, size=args.size, weights=args.weights)
     return 0 if ok else 1

@@ -385,19 +385,38 @@ def joint_positions(motion_or_batch, rest_joints: torch.Tensor) -> torch.Tensor:
     return joints + trans.to(rot)[..., None, :]
 
 
+_WARNED_GENDERS: set = set()  # (gender, body name) pairs warned about once
+
+
 def shape_for_body(motion, body, where: str | None = None):
-    """``motion`` with its shape made fit for ``body``: kept when it belongs to this body family
-    (SMPL betas truncated or zero-padded to the body's count); a shape of another body is replaced
-    by the neutral shape. The length is checked first (:func:`benchmark.core.plausibility.check_shape`:
-    an implausible one is an error naming ``where``, the motion's file; default its source)."""
+    """``motion`` with its shape made fit for ``body``: kept when it belongs to this body kind (SMPL,
+    SMPL-H and SMPL-X each have their own shape space: betas of one do not carry to another; SMPL
+    betas truncated or zero-padded to the body's count); a shape of another body is replaced by the
+    neutral shape, with a warning. Betas of a gendered model (``meta["gender"]``, AMASS) on a body of
+    another gender are kept, with a warning (once per pair). The length is checked first
+    (:func:`benchmark.core.plausibility.check_shape`: an implausible one is an error naming ``where``,
+    the motion's file; default its source)."""
     if motion.shape is None:
         return motion
     src = shape_family(motion.body)
     kind = shape_family(str(getattr(body, "model_type", None) or body.name))  # "smplh-female" -> "smplh"
-    if src == kind or (src in SMPL_FAMILY and kind in SMPL_FAMILY):
+    if src == kind:
         check_shape(motion.shape, where or motion.source or "motion", body.name, kind, body.shape_dim)
         s = motion.shape.reshape(-1)[: body.shape_dim]
         s = torch.cat([s, s.new_zeros(body.shape_dim - s.numel())])
+        gender = str((motion.meta or {}).get("gender") or "").lower()
+        body_gender = str(body.name).lower().split("-")[-1] if "-" in str(body.name) else ""
+        if kind in SMPL_FAMILY and gender in ("male", "female", "neutral") and body_gender and gender != body_gender:
+            if (gender, body.name) not in _WARNED_GENDERS:
+                _WARNED_GENDERS.add((gender, body.name))
+                log.warning("motion %s: its betas are for the %s %s model, the body is %r: the shape is not the "
+                            "subject's (give --body %s=PATH:%s for its own model)", where or motion.source, gender,
+                            kind.upper(), body.name, kind, gender)
         return replace(motion, shape=s, body=body.name)
-    log.info("motion %s: its %s shape does not apply to body %r; using the neutral shape", motion.source, src, body.name)
+    if src in SMPL_FAMILY and kind in SMPL_FAMILY:
+        log.warning("motion %s: its %s betas do not apply to body %r (another shape space); using the neutral shape",
+                    where or motion.source, src.upper(), body.name)
+    else:
+        log.info("motion %s: its %s shape does not apply to body %r; using the neutral shape", motion.source, src,
+                 body.name)
     return replace(motion, shape=None, body=None)

@@ -148,7 +148,10 @@ def make_adapter(name: str, size: str = "embedded", weights: str | None = None, 
         embedded = weights is None and size == "embedded"
         fix = (f"restore it (git checkout -- {file}) or retrain it (python -m benchmark train {name})" if embedded else
                "check the file: download it again, or pass the right file with --weights")
-        detail = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else "no message"
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else "no message"
+        if len(detail) > 200:  # cut at the last sentence or clause that fits, never mid-word
+            cut = max(detail.rfind(". ", 0, 200), detail.rfind("; ", 0, 200), detail.rfind(": ", 0, 200))
+            detail = detail[:cut if cut > 40 else detail.rfind(" ", 0, 200)].rstrip(" .;:,(") + " ..."
         raise WeightsFileError(f"prior {name!r}: weights file {file} is not a readable torch checkpoint "
                                f"(empty, truncated or another format: {type(exc).__name__}: {detail}); fix: {fix}") from exc
     return adapter.to(device).eval()

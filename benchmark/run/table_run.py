@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 from pathlib import Path
 
@@ -19,8 +20,6 @@ def motion_sha256(motion) -> str:
     """Content hash of a motion as a unit reads it: its arrays (dtype, shape and bytes of poses,
     translation, timestamps, shape), its body name and its metadata. Two files holding different
     motions under one name hash differently; the same motion hashes the same wherever it lies."""
-    import json
-
     import numpy as np
 
     if hasattr(motion, "content_sha256"):  # a capture (benchmark.loaders.scans.ScanSequence)
@@ -35,8 +34,33 @@ def motion_sha256(motion) -> str:
         h.update(f"{name}:{arr.dtype.str}:{arr.shape};".encode())
         h.update(arr.tobytes())
     h.update(f"body:{motion.body};".encode())
-    h.update(json.dumps(motion.meta or {}, sort_keys=True, default=str).encode())
+    meta = {k: v for k, v in (motion.meta or {}).items() if k not in PROVENANCE_ONLY}
+    h.update(json.dumps(meta, sort_keys=True, default=str).encode())
     return h.hexdigest()
+
+
+# metadata that says where a motion was read from, not what it is: left out of its hash (a moved or
+# re-spelt --data folder reuses its units)
+PROVENANCE_ONLY = ("file",)
+
+
+def body_identity(body) -> dict | None:
+    """What identifies a body model read from a user's file (its kind, name, shape components and the
+    file's sha256), which enters every unit's data hash: another SMPL file, gender or kind reruns the
+    units. None for the embedded Anny body (its units' hashes stay as stored; its observations'
+    fingerprints cover its cache build)."""
+    path = getattr(body, "source_path", None)
+    if path is None:
+        return None
+    return {"body": body.name, "kind": getattr(body, "model_type", None), "shape_dim": int(body.shape_dim),
+            "file_sha256": _sha_file(str(path))}
+
+
+def with_body(data_hash: str, identity: dict | None) -> str:
+    """A sequence's data hash on a body read from a file (:func:`body_identity`); as it is on Anny."""
+    if identity is None:
+        return data_hash
+    return hashlib.sha256(f"{data_hash};body:{json.dumps(identity, sort_keys=True)}".encode()).hexdigest()
 
 
 def prior_identity(adapter, size: str, weights: str | None) -> dict:
@@ -165,8 +189,10 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
         if prior_info[name].get("untrained"):
             log.warning("%s read no weights file: its row measures an untrained network (the table marks it)", name)
 
-    # the content of the motion data each sequence id stands for enters its units' spec hash
-    data_hashes = {sid: motion_sha256(motions[sid]) for sid in ids}
+    # the content of the motion data each sequence id stands for, and the body file it is posed on,
+    # enter its units' spec hash
+    body_id = body_identity(body)
+    data_hashes = {sid: with_body(motion_sha256(motions[sid]), body_id) for sid in ids}
     units = plan_units(spec, profile, priors, ids, seed, device, prior_info, data_hashes=data_hashes)
     source = protocol.make_source(spec, body, motions, seed)
     execute = TableExecutor(protocol, spec, profile, adapters, body, source, device)

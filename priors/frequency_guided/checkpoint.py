@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from benchmark.core.safe_loading import STATE_DICT_FIX, torch_load_weights
+from benchmark.core.safe_loading import STATE_DICT_FIX, is_lightning_bookkeeping, torch_load_weights, torch_load_with_stand_ins
 from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.vposer.checkpoint import V1_WHERE_TO_GET as VPOSER_V1_WHERE, is_vposer_v1_state, load_vposer_v1_state
 from priors.frequency_guided.model import FrequencyGuidedNetwork, MotionPrior, PAPER_CONFIG
@@ -113,7 +113,9 @@ def resolve_paper_weights(weights) -> tuple[Path, Path]:
 def _load_paper(weights) -> tuple[FrequencyGuidedNetwork, CheckpointReport]:
     """The official pair, read strictly into a paper-size network (the files are read first)."""
     a, b = resolve_paper_weights(weights)
-    sa, sb = torch_load_weights(a, STATE_DICT_FIX), torch_load_weights(b, STATE_DICT_FIX)
+    # a Lightning checkpoint's bookkeeping (VPoser V02_05's, given in place of v1.0) is read inert, so
+    # that the key checks below can say what the file is instead of calling it unsafe
+    sa, sb = (torch_load_with_stand_ins(f, is_lightning_bookkeeping, STATE_DICT_FIX)[0] for f in (a, b))
     if _looks_like_motion_prior(sb) and not _looks_like_motion_prior(sa):
         a, b, sa, sb = b, a, sb, sa
     if not _looks_like_motion_prior(sa):
@@ -123,8 +125,12 @@ def _load_paper(weights) -> tuple[FrequencyGuidedNetwork, CheckpointReport]:
             f"{b.name}: {list(sb)[:5] if isinstance(sb, dict) else type(sb).__name__}. {WHERE_TO_GET}"
         )
     if not is_vposer_v1_state(sb):
-        keys = list(sb)[:8] if isinstance(sb, dict) else type(sb).__name__
-        raise KeyError(f"{b}: not VPoser v1.0 (no 'bodyprior_enc_bn1.weight' key; first keys {keys}). {VPOSER_V1_WHERE}")
+        inner = sb.get("state_dict") if isinstance(sb, dict) and isinstance(sb.get("state_dict"), dict) else sb
+        keys = list(inner)[:8] if isinstance(inner, dict) else type(sb).__name__
+        v2 = isinstance(inner, dict) and any(str(k).startswith(("vp_model.", "encoder_net.")) for k in inner)
+        raise KeyError(f"{b}: not VPoser v1.0 (no 'bodyprior_enc_bn1.weight' key; first keys {keys})"
+                       + ("; this is VPoser V02_05: Xu et al.'s prior needs VPoser v1.0, TR00_E096.pt" if v2 else "")
+                       + f". {VPOSER_V1_WHERE}")
     network = FrequencyGuidedNetwork(PAPER_CONFIG)
     mp = load_motion_prior_state(sa, network.motion_prior, a)
     vp = load_vposer_v1_state(sb, network.vposer, b)

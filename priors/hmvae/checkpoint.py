@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from benchmark.core.safe_loading import UnsafeFileError, torch_load_weights
+from benchmark.core.safe_loading import UnsafeFileError, is_lightning_bookkeeping, torch_load_with_stand_ins
 from priors.checkpoints import CheckpointReport, check_size, load_state_strict
 from priors.hmvae.model import PAPER_CONFIG, HMVAE, HMVAEConfig
 from priors.hmvae.skeleton import PARENTS24, frozen_parameter_names
@@ -146,7 +146,10 @@ def resolve_paper_weights(spec: str | Path, need_trajectory: bool) -> PaperFiles
 
 def _torch_load(file: Path) -> object:
     try:
-        return torch_load_weights(file, "re-save the weights only: torch.save({'state_dict': model.state_dict()}, path)")
+        # a Lightning checkpoint's bookkeeping (another prior's file) is read inert: the key checks then
+        # say what the file is instead of calling it unsafe
+        return torch_load_with_stand_ins(file, is_lightning_bookkeeping,
+                                         "re-save the weights only: torch.save({'state_dict': model.state_dict()}, path)")[0]
     except UnsafeFileError:
         raise
     except pickle.UnpicklingError as exc:

@@ -103,6 +103,7 @@ def _load_state(ckpt: object, file: Path, model: VPoser) -> tuple[list[str], lis
     raw = ckpt["state_dict"]
     official = any(k.startswith(OFFICIAL_PREFIX) for k in raw)
     fmt = "official-lightning" if official else "project"
+    _check_any_key(raw, model, OFFICIAL_PREFIX if official else "", file)
     loaded, ignored = load_state_strict(
         model, raw, file, "VPoser V02_05", prefix=OFFICIAL_PREFIX if official else "", optional=_optional,
         ignore_unexpected=True,
@@ -110,6 +111,19 @@ def _load_state(ckpt: object, file: Path, model: VPoser) -> tuple[list[str], lis
     )
     ignored += sorted(f"<top level>/{k}" for k in ckpt if k != "state_dict" and not (fmt == "project" and k == "config"))
     return loaded, ignored, fmt
+
+
+def _check_any_key(raw: dict, model: VPoser, prefix: str, file: Path) -> None:
+    """Refuse a file that holds none of VPoser's keys (another prior's checkpoint, another key prefix),
+    naming what it holds and, where its keys end in VPoser's, the prefix to strip."""
+    wanted = list(model.state_dict())
+    if any(prefix + k in raw for k in wanted):
+        return
+    ends = next((k[: -len(w)] for k in raw for w in wanted if k.endswith("." + w)), None)
+    hint = (f"; its keys end in VPoser's after the prefix {ends!r}: re-save them with the official prefix "
+            f"{OFFICIAL_PREFIX!r} (or none)" if ends else "; is it another prior's checkpoint?")
+    raise ValueError(f"{file}: holds none of VPoser's weights (e.g. {prefix}{wanted[0]}); its keys: "
+                     f"{sorted(raw)[:6]}{' ...' if len(raw) > 6 else ''}{hint}")
 
 
 def _project_config(ckpt: object, file: Path) -> dict:
