@@ -69,7 +69,7 @@ class FakeExecutor:
         return {
             "unit_id": unit.unit_id, "spec_hash": unit.spec_hash, "prior": unit.prior, "cell": unit.cell,
             "sequence_ids": unit.sequence_ids,
-            "fingerprint": hashlib.sha256(f"obs/{unit.cell}/{unit.sequence_ids}/{unit.seed}".encode()).hexdigest(),
+            "fingerprint": hashlib.sha256(f"obs/{unit.cell}/{unit.sequence_ids}".encode()).hexdigest(),  # one observation per cell and batch, as every protocol
             "per_sequence": rows, "timings": {"fit_s": 1.5, "eval_s": 0.25}, "device": "cpu", "na_reason": reason,
         }
 

@@ -99,3 +99,15 @@ def test_markdown_shows_closest_and_reference_headings():
     md = format_markdown(_table(rows, METRICS))
     assert "## Acceleration (m/s²) (closest to Ground-truth acceleration (m/s²) is best)" in md
     assert "## Ground-truth acceleration (m/s²) (reference, not ranked)" in md
+
+
+def test_cells_seen_on_different_observations_are_not_paired():
+    """A row merged from a run whose observation differs (its fingerprint) is not compared sequence by
+    sequence with the others: a paired difference needs the same observation."""
+    rows = _rows()
+    for r, fp in zip(rows, ("obs-a", "obs-a", "obs-b")):
+        r["cells"][0]["fingerprint"] = fp
+    add_paired(rows, [{"gap": 5}], METRICS, table_seed=0)
+    cells = {r["prior"]: r["cells"][0] for r in rows}
+    assert "no_prior" in cells["smooth"]["paired"]["mpjpe_mm"]
+    assert "no_prior" not in cells["lively"].get("paired", {}).get("mpjpe_mm", {})

@@ -283,6 +283,9 @@ def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], tabl
                     refs["best"] = best
                 comparisons = {}
                 for role, ref in refs.items():
+                    fa, fb = cell.get("fingerprint"), have[ref].get("fingerprint")
+                    if fa and fb and fa != fb:  # merged rows seen on another observation: not a paired comparison
+                        continue
                     rng = np.random.default_rng(stable_seed("paired", table_seed, prior, ref, cell_json, name))
                     comparison = _paired(_distances(cell["per_sequence"], name, ref_name),
                                          _distances(have[ref]["per_sequence"], name, ref_name), name,
