@@ -47,6 +47,22 @@ def test_failures_are_collected_and_the_rest_runs(tmp_path, monkeypatch, capsys)
     assert "2 of 4 pairs ran without error, 2 failed;" in capsys.readouterr().out
 
 
+def test_a_pair_whose_units_all_fail_is_failed_with_where(tmp_path, monkeypatch, capsys):
+    """The runner catches a unit's exception and goes on: a pair whose units raised used to be
+    reported "ok" (exit 0) with nothing compared. It is "failed", with the unit's frames."""
+    from benchmark.protocols import inbetween
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("Expected all tensors to be on the same device, but found at least two devices")
+
+    monkeypatch.setattr(inbetween, "run_unit", broken)
+    out = tmp_path / "dc"
+    assert main(["device-check", "--device", "cpu", "--table", "inbetween", "--prior", "slerp", "--out", str(out)]) == 1
+    pair = json.loads((out / "device-check.json").read_text())["pairs"][0]
+    assert pair["status"] == "failed" and pair["error"] == "RuntimeError" and "same device" in pair["message"]
+    assert "4 unit(s) failed" in pair["message"] and "(broken)" in pair["innermost_frame"]
+
+
 def test_budget_stops_new_pairs(tmp_path):
     report = device_check.check_device("cpu", ["inbetween"], ["no-prior", "slerp"], tmp_path / "dc",
                                        tmp_path / "no-results", budget_s=-1.0, log=lambda *a: None)

@@ -175,7 +175,8 @@ class StaticChamfer:
         prefix, and their (N,) lengths: an unbiased sample for the mean over ``b`` of any function."""
         m = min(int(m), self.b.shape[1])
         u = torch.rand(self.b.shape[0], m, generator=generator, dtype=torch.float64)
-        idx = (u * self.bl.to(torch.float64)[:, None]).long().clamp_max(self.bl[:, None] - 1).to(self.b.device)
+        bl = self.bl.cpu()  # the draws come from a CPU generator (the same samples on any device)
+        idx = (u * bl.to(torch.float64)[:, None]).long().clamp_max(bl[:, None] - 1).to(self.b.device)
         return torch.gather(self.b, 1, idx[..., None].expand(-1, -1, 3)), torch.full_like(self.bl, m)
 
     def __call__(self, a: torch.Tensor, a_lengths: torch.Tensor | None = None, squared: bool = False,

@@ -58,7 +58,8 @@ class SlsData:
                 evals.append(sample_surface(gt.vertices[b:b + 1], faces, n_points, g_ev, noise))
         points = torch.cat(scans)
         B = len(ids)
-        pcs = PointCloudSequence(points=points, lengths=torch.full((B, A), n_points, dtype=torch.long), timestamps=t)
+        pcs = PointCloudSequence(points=points, lengths=torch.full((B, A), n_points, dtype=torch.long, device=points.device),
+                                 timestamps=t)
         gt_landmarks = self.body.landmarks(gt.vertices)
         landmarks = gt_landmarks
         lm_noise = float(d.get("landmark_noise_std", 0.0))

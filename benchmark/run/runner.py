@@ -77,6 +77,7 @@ class RunReport:
     carried: list[str] = field(default_factory=list)
     ran: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
+    errors: dict[str, BaseException] = field(default_factory=dict)  # unit_id -> the exception (its traceback)
     moved: list[Path] = field(default_factory=list)
     moved_why: dict[str, str] = field(default_factory=dict)
     wall_s: float = 0.0
@@ -291,6 +292,7 @@ def run_units(
                     error = exc
             if error is not None:
                 report.failed[unit.unit_id] = f"{type(error).__name__}: {error}"
+                report.errors[unit.unit_id] = error
                 # one line; the traceback with --debug (or -v), which set this logger to DEBUG
                 trace = log.isEnabledFor(logging.DEBUG)
                 log.error("unit %s failed: %s: %s%s", unit.unit_id, type(error).__name__, error,

@@ -204,4 +204,5 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
             "sequences": ids, "data": data or "synthetic:test", "body": body.name, "resume": report.resume_counts()}
     table = derive_table(spec, results, meta)
     files = write_table(table, out_dir)
-    return {"table": table, "markdown": format_markdown(table), "files": files, "failures": failures}
+    return {"table": table, "markdown": format_markdown(table), "files": files, "failures": failures,
+            "errors": report.errors}

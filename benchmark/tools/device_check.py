@@ -123,9 +123,18 @@ def check_device(device: str, tables: list[str], priors: list[str] | None, out: 
             log(f"{table:15s} {prior:22s} FAILED after {time.monotonic() - t0:.0f} s: {entry['error']}: {entry['message'][:160]}")
             log(f"{'':38s} at {entry['project_frame'] or entry['innermost_frame']}")
         else:
-            entry.update(status="ok", seconds=round(time.monotonic() - t0, 1), peak_gib=_peak_gib(device),
-                         against_smoke_golden=golden_differences(result["table"], results_dir / f"{table}.smoke.json", prior))
-            log(f"{table:15s} {prior:22s} ok in {entry['seconds']:.0f} s")
+            if result["failures"]:  # the runner stores what it could and lists the units that raised
+                first = next(iter(result["failures"]))
+                entry.update(status="failed", seconds=round(time.monotonic() - t0, 1),
+                             **failure_record(result.get("errors", {}).get(first) or RuntimeError(result["failures"][first])))
+                entry["message"] = f"{len(result['failures'])} unit(s) failed; {first}: {entry['message']}"[:500]
+                log(f"{table:15s} {prior:22s} FAILED: {entry['error']}: {entry['message'][:160]}")
+                log(f"{'':38s} at {entry['project_frame'] or entry['innermost_frame']}")
+            else:
+                entry.update(status="ok", seconds=round(time.monotonic() - t0, 1), peak_gib=_peak_gib(device),
+                             against_smoke_golden=golden_differences(result["table"], results_dir / f"{table}.smoke.json",
+                                                                     prior))
+                log(f"{table:15s} {prior:22s} ok in {entry['seconds']:.0f} s")
         report["pairs"].append(entry)
     report["seconds"] = round(time.monotonic() - start, 1)
     _write(report, out)

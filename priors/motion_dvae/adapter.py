@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 
@@ -177,7 +178,8 @@ class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNet
         if T > 1 and not _regular_30fps(timestamps, self.window.fps):
             raise ValueError("motion-dvae.decode: timestamps must be a regular 30 fps grid (the model is recurrent at 30 fps); "
                              "the protocol interpolates to other times")
-        states = self.net.unnormalise(self.net.decode_normalised(x0n, z))
+        with cudnn_rnn_backward([self.net]):
+            states = self.net.unnormalise(self.net.decode_normalised(x0n, z))
         rot, trans = state_to_motion(states)
         return Decoded(rotations=rot, trans=trans, extra={"state": states})
 
@@ -185,7 +187,8 @@ class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNet
         """(B,) learned: -1/(T-1) sum_t log N(z_t; prior(h_{t-1})); l2: mean over frames of |z_t|^2."""
         x0n, z = self._check_latents(latents, "prior_term")
         if self.prior_term_kind == "learned":
-            return self.net.prior_nll_normalised(x0n, z)
+            with cudnn_rnn_backward([self.net]):
+                return self.net.prior_nll_normalised(x0n, z)
         if self.prior_term_kind == "l2":
             return z.square().sum(-1).mean(-1)
         raise ValueError(f"motion-dvae: prior_term_kind must be 'learned' or 'l2', got {self.prior_term_kind!r}")
@@ -257,9 +260,9 @@ class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNet
             with torch.no_grad():
                 obs = body_points(rot_c, tr_c, net.rest_joints)
             opt = torch.optim.Adam(params, lr=lr)
-            gen = torch.Generator(device=states.device).manual_seed(seed)
+            gen = torch.Generator().manual_seed(seed)  # CPU draws, moved: the same noise on any device
             losses = []
-            with torch.enable_grad():
+            with torch.enable_grad(), cudnn_rnn_backward(nets):
                 for _ in range(int(iterations)):
                     parts = net.denoise_loss(states, obs, beta=1.0, nets=nets, generator=gen)
                     opt.zero_grad(set_to_none=True)
@@ -305,3 +308,27 @@ class MotionDVAEPrior(MotionEncoder, MotionDenoiser, ExportableDecoder, PaperNet
             kw = {"steps": int(steps), "denoise_steps": max(1, 2 * int(steps) // 5)}
         _, record = train_motion_dvae(out, seed=seed, dataset=dataset, **kw)
         return record
+
+
+@contextlib.contextmanager
+def cudnn_rnn_backward(modules):
+    """Where a gradient flows through the frozen network's LSTMs on CUDA: cuDNN computes an RNN's
+    backward only in training mode ("cudnn RNN backward can only be called in training mode"), and
+    the fits differentiate the latents through the network frozen in eval mode. Its LSTMs (one
+    layer, or no dropout between layers: the same function in either mode) are put in training mode
+    for the call; others run without cuDNN. Nothing changes on the CPU or without a gradient."""
+    rnns = [m for mod in modules for m in mod.modules() if isinstance(m, nn.RNNBase) and not m.training]
+    if not rnns or not torch.is_grad_enabled() or rnns[0].weight_ih_l0.device.type != "cuda":
+        yield
+        return
+    if any(m.num_layers > 1 and m.dropout > 0 for m in rnns):
+        with torch.backends.cudnn.flags(enabled=False):
+            yield
+        return
+    for m in rnns:
+        m.train(True)
+    try:
+        yield
+    finally:
+        for m in rnns:
+            m.train(False)
