@@ -142,6 +142,7 @@ class AnnyBody(BodyModel):
 
     def __init__(self, anny_model=None, dtype: torch.dtype = torch.float32):
         super().__init__()
+        self._targets: dict = {}  # the T-pose's constant target directions, per (direction, dtype, device)
         model = anny_model if anny_model is not None else _make_anny()
         if tuple(model.phenotype_labels) != PHENOTYPE_LABELS:
             raise ValueError(f"unexpected Anny phenotype labels {model.phenotype_labels}, expected {PHENOTYPE_LABELS}")
@@ -242,10 +243,14 @@ class AnnyBody(BodyModel):
             end, direction, keep_pitch = target_of[j]
             end_pos = tails[:, self.joint_bones[j]] if end < 0 else heads[:, end]
             current = (G[p] @ (end_pos - jh[:, j])[..., None])[..., 0]
-            target = torch.tensor(direction, dtype=verts.dtype, device=verts.device).expand_as(current)
             if keep_pitch:  # point the segment straight forward, keeping its rise/fall
                 horiz = current[:, [0, 2]].norm(dim=-1, keepdim=True)
                 target = torch.cat([torch.zeros_like(horiz), current[:, 1:2], horiz], dim=-1)
+            else:  # a constant: made on the device once, not copied from the host at every call
+                key = (tuple(direction), verts.dtype, verts.device)
+                if key not in self._targets:
+                    self._targets[key] = torch.tensor(direction, dtype=verts.dtype, device=verts.device)
+                target = self._targets[key].expand_as(current)
             G[j] = rotation_between(current, target) @ G[p]
         G = torch.stack(G, dim=1)  # (B, 22, 3, 3)
         P = torch.stack(P, dim=1)  # (B, 22, 3)

@@ -18,6 +18,17 @@ def kinematic_levels(parents=PARENTS) -> list[list[int]]:
     return [[j for j in range(len(parents)) if depth[j] == d] for d in range(max(depth) + 1)]
 
 
+_PARENT_INDEX: dict = {}
+
+
+def _parent_index(parents: tuple, device) -> torch.Tensor:
+    """The parents' index tensor on ``device``, made once (a host-to-device copy per call on CUDA)."""
+    key = (parents, str(device))
+    if key not in _PARENT_INDEX:
+        _PARENT_INDEX[key] = torch.tensor([max(p, 0) for p in parents], device=device)
+    return _PARENT_INDEX[key]
+
+
 def forward_kinematics(
     rotations: torch.Tensor, rest_joints: torch.Tensor, parents=PARENTS
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -31,7 +42,7 @@ def forward_kinematics(
     rest_joints = rest_joints.expand(*batch, *rest_joints.shape[-2:])
     J = len(parents)
     offsets = rest_joints.clone()
-    par = torch.tensor([max(p, 0) for p in parents], device=rest_joints.device)
+    par = _parent_index(tuple(parents), rest_joints.device)
     offsets[..., 1:, :] = rest_joints[..., 1:, :] - rest_joints[..., par[1:], :]
     g_rot = [None] * J
     g_pos = [None] * J
