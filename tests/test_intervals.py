@@ -17,7 +17,8 @@ from benchmark.report.cells import CellReport
 from benchmark.report.plots import error_bars
 from benchmark.report.sections import metric_table
 from benchmark.run.table_derive import derive_table
-from benchmark.run.writers import SIGNIFICANT_MARK, format_csv, format_latex, format_markdown
+from benchmark.run.csv_format import format_csv
+from benchmark.run.writers import SIGNIFICANT_MARK, format_latex, format_markdown
 from fake_units import FakeExecutor, meta, plan, profile, table_spec
 
 PRIORS = ["no-prior", "vposer-slerp", "hmvae"]

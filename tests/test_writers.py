@@ -8,7 +8,8 @@ import pytest
 
 from benchmark.run.catalog import load_table_spec
 from benchmark.run.table_derive import derive_table
-from benchmark.run.writers import format_csv, format_latex, format_markdown, metric_label, write_table
+from benchmark.run.csv_format import format_csv
+from benchmark.run.writers import format_latex, format_markdown, metric_label, write_table
 from fake_units import FakeExecutor, meta, plan, table_spec
 
 NA = "2 s windows cannot hold 100 points"

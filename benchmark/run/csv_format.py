@@ -8,6 +8,7 @@ import io
 from typing import Mapping
 
 from benchmark.core.work_units import grid_axes
+from benchmark.run.table_derive import cell_reason, metric_unit
 
 
 PAIRED_ROLES = {"no_prior": "vs_no_prior", "best": "vs_best"}  # cell["paired"][metric] key -> CSV column prefix
@@ -37,8 +38,6 @@ def format_csv(table: Mapping) -> str:
     ``best_prior`` (the cell's best prior by the metric's mean) and ``vs_best_*`` (against it): the
     mean difference this prior minus the other, its interval, ``significant`` (the interval
     excludes 0) and ``better`` (``true`` / ``false``). Empty where it does not apply."""
-    from benchmark.run.writers import _cell_reason, metric_unit
-
     grid_keys = grid_axes(table)
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
@@ -50,7 +49,7 @@ def format_csv(table: Mapping) -> str:
         for j, cell in enumerate(row["cells"]):
             for metric in table["metrics"]:
                 name = metric["name"]
-                reason = _cell_reason(cell, name)
+                reason = cell_reason(cell, name)
                 value = "" if reason is not None else repr(float(cell[name]))
                 std = cell.get(f"{name}_std")
                 ci = cell.get(f"{name}_ci95") if reason is None else None

@@ -324,3 +324,23 @@ def _paired(a: Mapping, b: Mapping, metric: str, better: str, vs: str, rng: np.r
     gain = -out["diff"] if better == "lower" else out["diff"]
     out["better"] = None if gain == 0 else bool(gain > 0)
     return out
+
+
+UNIT_SUFFIXES = ("mps2", "mm", "cm", "m", "deg", "rad", "s")  # the unit suffixes a metric name may end with, checked in this order
+
+
+def metric_unit(name: str) -> str | None:
+    """The unit a metric name ends with (``chamfer_mm`` -> ``mm``), or None."""
+    for unit in UNIT_SUFFIXES:
+        if name.endswith("_" + unit):
+            return unit
+    return None
+
+
+def cell_reason(cell: Mapping, metric: str) -> str | None:
+    """Why a cell shows no number for ``metric`` (the cell's or the metric's n/a reason), or None."""
+    if cell.get("na_reason"):
+        return cell["na_reason"]
+    if cell.get(metric) is None:
+        return cell.get("metric_na", {}).get(metric, "no value")
+    return None

@@ -26,7 +26,7 @@ from benchmark.core.fit_diagnostics import (BACKWARDS_DEG, CONVERGED_MAX_DECREAS
 from benchmark.core.json_io import atomic_write_json, atomic_write_text
 from benchmark.core.work_units import grid_axes
 from benchmark.run.csv_format import format_csv
-from benchmark.run.table_derive import NO_PRIOR
+from benchmark.run.table_derive import NO_PRIOR, cell_reason, metric_unit
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,6 @@ METRIC_NAMES = {
     "time_per_frame": "Time per frame",
     "quat_loss": "Quaternion loss",
 }
-UNIT_SUFFIXES = ("mps2", "mm", "cm", "m", "deg", "rad", "s")
 UNIT_TEXT = {"mps2": "m/s²"}  # how a unit suffix is written in a label (the CSV: ASCII, m/s^2)
 # How a grid axis value is shown in a column label.
 AXIS_LABELS = {"points": "{} pts", "fps": "{} fps", "sigma": "σ = {}", "gap": "gap {}", "frames": "{} frames", "sweep": "{}",
@@ -62,14 +61,6 @@ AXIS_LABELS = {"points": "{} pts", "fps": "{} fps", "sigma": "σ = {}", "gap": "
 # --------------------------------------------------------------------------------------------
 # Labels and numbers
 # --------------------------------------------------------------------------------------------
-
-def metric_unit(name: str) -> str | None:
-    """The unit a metric name ends with (``chamfer_mm`` -> ``mm``), or None."""
-    for unit in UNIT_SUFFIXES:
-        if name.endswith("_" + unit):
-            return unit
-    return None
-
 
 def metric_label(name: str) -> str:
     """``chamfer_mm`` -> ``Chamfer (mm)``; unknown names: words capitalised, unit in brackets."""
@@ -161,14 +152,6 @@ def _metrics_in_order(table: Mapping) -> list[dict]:
     metrics = list(table["metrics"])
     head = table.get("headline_metric", metrics[0]["name"])
     return sorted(metrics, key=lambda m: m["name"] != head)
-
-
-def _cell_reason(cell: Mapping, metric: str) -> str | None:
-    if cell.get("na_reason"):
-        return cell["na_reason"]
-    if cell.get(metric) is None:
-        return cell.get("metric_na", {}).get(metric, "no value")
-    return None
 
 
 def untrained_reason(table: Mapping, prior: str) -> str | None:
@@ -299,7 +282,7 @@ def format_markdown(table: Mapping) -> str:
         for row in rows:
             out = []
             for cell in row["cells"]:
-                reason = _cell_reason(cell, name)
+                reason = cell_reason(cell, name)
                 if reason is not None:
                     out.append(f"n/a {note(reason)}")
                 else:
@@ -404,7 +387,7 @@ def format_latex(table: Mapping) -> str:
     for row in rows:
         values = []
         for cell in row["cells"]:
-            reason = _cell_reason(cell, name)
+            reason = cell_reason(cell, name)
             if reason is not None:
                 marks.setdefault(reason, len(marks) + 1)
                 values.append(rf"n/a$^{{{marks[reason]}}}$")
