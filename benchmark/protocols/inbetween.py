@@ -17,10 +17,11 @@ rotations and joint positions). ``objective.init: encoder``: priors with an enco
 latents (:func:`initial_latents`: per-frame priors encode the observed frames, the others the window
 filled by the SLERP baseline), a prior whose ``encode_motion`` is an exact change of representation
 (``no-prior``, version 2) from the observed frames themselves, the others from a prior sample;
-``sample``: every prior starts from a prior sample (as HM-VAE: "randomly sampled latent vectors"). Root orientation and translation (where the prior does not encode them) one per observed
-frame, started at the observed values and SLERPed / LERPed by the protocol in between. Adam; version
-2: the plateau rule (each sequence to its plateau under the profile's cap, its fit diagnostics
-stored); version 1: a cosine schedule over the profile's steps.
+``sample``: every prior starts from a prior sample (as HM-VAE: "randomly sampled latent vectors").
+Root orientation and translation (where the prior does not encode them) one per observed frame,
+started at the observed values and SLERPed / LERPed by the protocol in between. Adam; version 2: the
+plateau rule (each sequence to its plateau under the profile's cap, its fit diagnostics stored);
+version 1: a cosine schedule over the profile's steps.
 
 The SLERP baseline (adapter ``slerp``, priors/slerp.py, ``interpolation_baseline = True``) is not
 fitted: its latents are the observed rotations, its rigid parameters the observed root and
@@ -30,10 +31,11 @@ the key frame: exact on the observed frames.
 Metrics on the ``gap`` missing frames (sums over them; the table divides by frames):
 ``mpjpe_local_m`` (version 2's headline: the joints relative to the pelvis, the local pose the paper's
 Table 2 scores with VIBE's metrics), ``mpjpe_m`` (world coordinates: the root's path enters),
-``pa_mpjpe_m``, ``accel_mps2`` (version 2: of the pelvis-centred joints, as VIBE's) (mean joint acceleration magnitude of the output, m/s^2, the second
-difference centred on each missing frame, so the last context frame and the key frame of the output
-enter; judged by its distance to ``gt_accel_mps2``, the ground truth's own, version 2), ``accer_mps2``
-(the same of the difference to the ground truth's acceleration), ``quat_loss`` (the
+``pa_mpjpe_m``, ``accel_mps2`` (mean joint acceleration magnitude of the output's pelvis-centred
+joints, as VIBE's, m/s^2, the second difference centred on each missing frame, so the last context
+frame and the key frame of the output enter; judged by its distance to ``gt_accel_mps2``, the ground
+truth's own), ``accer_mps2`` (the same of the difference to the ground truth's acceleration),
+``quat_loss`` (the
 global quaternion loss of Harvey et al.: per frame, the Euclidean norm of the difference of the 22
 world-rotation quaternions concatenated, each sign-aligned to the ground truth;
 :func:`benchmark.protocols.motion_fit.quaternion_loss`).
