@@ -182,8 +182,8 @@ def run_unit(unit, spec: dict, profile: dict, adapter, body, source: DenoiseSour
     timer = Timer(device)
     info: dict = {"history": []}
     if isinstance(adapter, MotionDenoiser):
-        method = f"denoise_motion(mode={mode!r}" + (f", {denoiser_iterations(spec, steps)} iterations)" if mode != "regression" else ")")
         iterations = 0 if mode == "regression" else denoiser_iterations(spec, steps)
+        method = f"denoise_motion(mode={mode!r}" + (f", {iterations} iterations)" if iterations else ")")
         with timer:
             res = adapter.denoise_motion(rotations=noisy_rot, trans=obs_trans, timestamps=clean.timestamps, mode=mode,
                                          iterations=iterations)
