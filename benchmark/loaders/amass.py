@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 
 from benchmark.core.frames import Z_UP_TO_Y_UP
 from benchmark.core.motion import Motion
 from benchmark.core.plausibility import check_motion
 from benchmark.core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from benchmark.core.safe_loading import npz_read_error
+from benchmark.core.yaml_io import load_yaml
 
 FRAME_RATE_TABLE = Path(__file__).with_name("frame_rates.yaml")
 
@@ -47,7 +47,7 @@ _BODY_BY_WIDTH = {156: "smplh", 165: "smplx", 72: "smpl", 66: None}
 @lru_cache(maxsize=8)
 def _read_table(path: str) -> tuple[int, tuple[dict, ...]]:
     with open(path) as f:
-        doc = yaml.safe_load(f)
+        doc = load_yaml(f.read(), path)
     if not isinstance(doc, dict) or "version" not in doc or "corrections" not in doc:
         raise ValueError(f"{path}: a frame-rate table needs 'version' and 'corrections' keys")
     entries = []

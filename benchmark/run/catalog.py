@@ -13,7 +13,7 @@ from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
-import yaml
+from benchmark.core.yaml_io import load_yaml
 
 from benchmark.core.plugins import BUILTIN_ORIGIN, PluginEntry, PluginRegistry
 
@@ -78,7 +78,7 @@ def unregister_table(name: str) -> None:
 @lru_cache(maxsize=None)
 def load_table_spec(name: str) -> dict:
     entry = TABLES.lookup(name, matches=1, listed="Known")
-    spec = yaml.safe_load(entry.read_text())
+    spec = load_yaml(entry.read_text(), f"table spec {entry.target}")
     if entry.origin == BUILTIN_ORIGIN:
         return spec
     where = f"table {name!r} ({entry.target}, from {entry.origin})"
@@ -99,7 +99,7 @@ def default_priors(spec: dict) -> list[str]:
 
 @lru_cache(maxsize=None)
 def load_profiles() -> dict:
-    return yaml.safe_load(resources.files("benchmark").joinpath("profiles.yaml").read_text())
+    return load_yaml(resources.files("benchmark").joinpath("profiles.yaml").read_text(), "benchmark/profiles.yaml")
 
 
 def get_profile(name: str, table: str | None = None) -> dict:
