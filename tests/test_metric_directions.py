@@ -111,3 +111,20 @@ def test_cells_seen_on_different_observations_are_not_paired():
     cells = {r["prior"]: r["cells"][0] for r in rows}
     assert "no_prior" in cells["smooth"]["paired"]["mpjpe_mm"]
     assert "no_prior" not in cells["lively"].get("paired", {}).get("mpjpe_mm", {})
+
+
+def test_headers_say_which_frames_a_number_averages():
+    """inbetween scores only the missing frames: its spec's scored_frames reaches the table and its
+    Markdown and LaTeX headers; a table without it averages every output frame."""
+    from benchmark.run.catalog import load_table_spec
+    from benchmark.run.writers import format_latex
+
+    rows = _rows()
+    for r in rows:
+        r["cells"][0].update(gap=5, sequences=4, frames=40)
+    table = _table(rows, METRICS)
+    assert "mean over all output frames of all sequences" in format_markdown(table)
+    table["scored_frames"] = load_table_spec("inbetween")["scored_frames"]
+    for text in (format_markdown(table), format_latex(table)):
+        assert "mean over the missing frames (the gap) of all sequences" in text
+        assert "all output frames" not in text

@@ -47,7 +47,7 @@ log = logging.getLogger("benchmark.results")  # the name it had before the split
 # Keys of a table spec that do not change any unit's result (presentation, or the grid as a
 # whole: a unit's own cell is part of its spec). Every other key is a rule and enters the hash.
 NON_RULE_KEYS = frozenset({"name", "title", "paper", "grid", "description", "protocol_version", "headline_metric",
-                           "default_priors", "same_cells"})  # same_cells: benchmark.run.same_cells
+                           "default_priors", "same_cells", "scored_frames"})  # same_cells: benchmark.run.same_cells; scored_frames: the tables' header
 # Keys of a profile that are not sizes.
 NON_SIZE_PROFILE_KEYS = frozenset({"name", "description"})
 # Reported-unit suffix -> (SI suffix used in the unit results' sums, factor SI -> reported).

@@ -176,6 +176,8 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
     }
     if table_spec.get("paper"):
         table["paper"] = copy.deepcopy(table_spec["paper"])
+    if table_spec.get("scored_frames"):
+        table["scored_frames"] = str(table_spec["scored_frames"])
     copy_same_cells(table, same_cells(table_spec))  # columns fitted once under another name
     all_cells = [c for row in rows for c in row["cells"]]
     table["counts"].update(cells=len(all_cells), cells_na=sum(1 for c in all_cells if c.get("na_reason")))

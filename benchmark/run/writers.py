@@ -235,6 +235,12 @@ def _header_facts(table: Mapping) -> list[str]:
     return facts
 
 
+def averaged_over(table: Mapping) -> str:
+    """What a cell's number averages: every output frame of every sequence, unless the table scores
+    only some frames (its spec's ``scored_frames``, e.g. inbetween's missing frames)."""
+    return f"mean over {table.get('scored_frames') or 'all output frames'} of all sequences"
+
+
 def profile_warning(table: Mapping) -> str | None:
     """The warning a non-``full`` profile carries, or None."""
     if table.get("profile") == "full":
@@ -267,10 +273,10 @@ def format_markdown(table: Mapping) -> str:
         lines += ["", f"> **Warning.** {warning}"]
     intervals = has_intervals(table)
     if intervals:
-        lines += ["", "Each number: mean over all output frames of all sequences, then in brackets its "
+        lines += ["", f"Each number: {averaged_over(table)}, then in brackets its "
                       f"{table.get('interval_definition', 'bootstrap interval over sequences')}."]
     else:
-        lines += ["", f"Each number: mean over all output frames of all sequences ± {table.get('std_definition', 'standard deviation over sequences')}."]
+        lines += ["", f"Each number: {averaged_over(table)} ± {table.get('std_definition', 'standard deviation over sequences')}."]
 
     for metric in _metrics_in_order(table):
         name = metric["name"]
@@ -372,7 +378,7 @@ def format_latex(table: Mapping) -> str:
     out = [f"% {table.get('title', table['table'])}",
            f"% table {table['table']}, protocol version {table['protocol_version']}, profile {table['profile']}, "
            f"device {table['device']}, seed {table['seed']}",
-           f"% {metric_label(name)}: mean over all output frames of all sequences"]
+           f"% {metric_label(name)}: {averaged_over(table)}"]
     intervals = has_intervals(table)
     level = (table.get("bootstrap") or {}).get("level", 0.95)
     if intervals:
