@@ -241,3 +241,38 @@ def test_report_table_and_error_bars(table):
     assert bars.shape == (2, 6)
     assert bars[:, 0] == pytest.approx([c["chamfer_mm"] - c["chamfer_mm_ci95"][0], c["chamfer_mm_ci95"][1] - c["chamfer_mm"]])
     assert error_bars(old["rows"][2]["cells"], "chamfer_mm")[:, 0] == pytest.approx([c["chamfer_mm_std"]] * 2)
+
+
+# ---------------------------------------------------------------- measured times
+
+def _timed_table():
+    """A table with a measured time (``timing: true``): one time per frame per unit, as the denoise
+    protocol records it (the batch's seconds shared by its sequences)."""
+    spec = table_spec()
+    spec["metrics"] = list(spec["metrics"]) + [{"name": "time_per_frame_s", "better": "lower", "timing": True}]
+    units = plan(spec=spec, priors=PRIORS, seqs=SEQS[:4])
+    results = [FakeExecutor()(u) for u in units]
+    per_frame = {"no-prior": 0.2, "vposer-slerp": 0.1, "hmvae": 0.3}
+    for r in results:
+        for row in r["per_sequence"]:
+            row["sums"]["time_per_frame_s"] = per_frame[r["prior"]] * row["frames"]
+    return derive_table(spec, results, meta(units))
+
+
+def test_a_measured_time_gets_no_interval_and_no_significance():
+    table = _timed_table()
+    cell = _cell(table, "vposer-slerp")
+    assert cell["time_per_frame_s"] == pytest.approx(0.1)
+    # the batch's one timing repeated per sequence is no sample: no [0.1, 0.1] interval, no †
+    assert cell["time_per_frame_s_ci95"] is None and "measured time" in cell["ci_na"]["time_per_frame_s"]
+    c = cell["paired"]["time_per_frame_s"]["no_prior"]
+    assert c["diff"] == pytest.approx(-0.1) and c["better"] is True
+    assert c["ci95"] is None and c["significant"] is None and "measured time" in c["ci_na"]
+    assert cell["chamfer_mm_ci95"] is not None  # the other metrics keep theirs
+    md = format_markdown(table)
+    section = md.split("## Time per frame (s)")[1].split("## ")[0]
+    row = next(l for l in section.splitlines() if l.startswith("| vposer-slerp |"))
+    assert row.split(" | ")[1] == "0.1" and SIGNIFICANT_MARK not in row
+    rows = list(csv.DictReader(io.StringIO(format_csv(table))))
+    timed = next(r for r in rows if r["prior"] == "vposer-slerp" and r["metric"] == "time_per_frame_s")
+    assert timed["ci95_lo"] == "" and timed["vs_no_prior_significant"] == "" and timed["vs_no_prior_better"] == "true"

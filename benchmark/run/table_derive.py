@@ -28,11 +28,15 @@ log = logging.getLogger("benchmark.results")  # the name it had before the split
 STD_DEFINITION = "population standard deviation (ddof=0) over sequences of the per-sequence means"
 INTERVAL_DEFINITION = (f"{LEVEL:.0%} percentile bootstrap interval of the cell's frame-weighted mean: its sequences "
                        f"(each with its mean and its frames) resampled with replacement, {RESAMPLES} times; none with "
-                       "fewer than 2 sequences")
+                       "fewer than 2 sequences, none for a measured time (timing: true)")
+TIMING_NO_INTERVAL = ("a measured time (timing: true): one timing of the work unit's whole batch, shared by its "
+                      "sequences, so its spread over sequences says nothing of its uncertainty; no interval and no "
+                      "significance")
 PAIRED_DEFINITION = ("per cell and metric, against no-prior and against the cell's best prior by the metric's mean: the "
                      "frame-weighted mean of the per-sequence differences (this prior minus the other) over the "
                      f"sequences both cells have, its {LEVEL:.0%} paired bootstrap interval (sequence indices resampled "
-                     "jointly), whether the interval excludes 0 (significant), and whether this prior does better")
+                     "jointly), whether the interval excludes 0 (significant), and whether this prior does better; "
+                     "for a measured time (timing: true) the difference alone")
 SEED_RULE = ("numpy.random.default_rng(stable_seed('bootstrap', seed, prior, cell, metric)) for a cell's interval, "
              "stable_seed('paired', seed, prior, vs, cell, metric) for a paired comparison; seed: the table's seed, "
              "cell: the canonical JSON of its grid coordinates (benchmark.core.work_units.stable_seed)")
@@ -234,7 +238,10 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
         out[name] = factor * total / sum(frames)
         per_seq = sequence_values(seqs, name)
         out[f"{name}_std"] = statistics.pstdev(per_seq) if len(per_seq) > 1 else 0.0
-        if len(per_seq) > 1:
+        if m.get("timing"):
+            out[f"{name}_ci95"] = None
+            ci_na[name] = TIMING_NO_INTERVAL
+        elif len(per_seq) > 1:
             rng = np.random.default_rng(stable_seed("bootstrap", *seed_parts, canonical_json(cell), name))
             out[f"{name}_ci95"] = list(bootstrap_ci(per_seq, frames, rng))
         else:
@@ -289,7 +296,8 @@ def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], tabl
                     rng = np.random.default_rng(stable_seed("paired", table_seed, prior, ref, cell_json, name))
                     comparison = _paired(_distances(cell["per_sequence"], name, ref_name),
                                          _distances(have[ref]["per_sequence"], name, ref_name), name,
-                                         "lower" if ref_name else m["better"], ref, rng)
+                                         "lower" if ref_name else m["better"], ref, rng,
+                                         no_interval=TIMING_NO_INTERVAL if m.get("timing") else None)
                     if comparison is not None:
                         comparisons[role] = comparison
                 if comparisons:
@@ -304,9 +312,11 @@ def _distances(per_sequence: Mapping, metric: str, reference: str | None) -> Map
     return {**per_sequence, metric: [abs(v - r) for v, r in zip(per_sequence[metric], per_sequence[reference])]}
 
 
-def _paired(a: Mapping, b: Mapping, metric: str, better: str, vs: str, rng: np.random.Generator) -> dict | None:
+def _paired(a: Mapping, b: Mapping, metric: str, better: str, vs: str, rng: np.random.Generator,
+            no_interval: str | None = None) -> dict | None:
     """One paired comparison of ``a``'s metric against ``b``'s (``per_sequence`` blocks) over the
-    sequences both have, weighted by ``a``'s frames; None when they share no sequence."""
+    sequences both have, weighted by ``a``'s frames; None when they share no sequence.
+    ``no_interval``: why this metric gets the difference alone (no interval, no significance)."""
     where = {sid: k for k, sid in enumerate(b["id"])}
     pairs = [(i, where[sid]) for i, sid in enumerate(a["id"]) if sid in where]
     if not pairs:
@@ -315,9 +325,9 @@ def _paired(a: Mapping, b: Mapping, metric: str, better: str, vs: str, rng: np.r
     vb = [b[metric][k] for _, k in pairs]
     w = [a["frames"][i] for i, _ in pairs]
     out: dict[str, Any] = {"vs": vs, "sequences": len(pairs)}
-    if len(pairs) < 2:
+    if no_interval is not None or len(pairs) < 2:
         out.update(diff=weighted_mean(np.subtract(va, vb), w), ci95=None, significant=None,
-                   ci_na="1 sequence in common: no interval")
+                   ci_na=no_interval or "1 sequence in common: no interval")
     else:
         diff, ci = paired_bootstrap(va, vb, w, rng)
         out.update(diff=diff, ci95=list(ci), significant=excludes_zero(ci))
