@@ -111,3 +111,20 @@ def test_cells_seen_on_different_observations_are_not_paired():
     cells = {r["prior"]: r["cells"][0] for r in rows}
     assert "no_prior" in cells["smooth"]["paired"]["mpjpe_mm"]
     assert "no_prior" not in cells["lively"].get("paired", {}).get("mpjpe_mm", {})
+
+
+def test_closest_ranks_by_the_mean_per_sequence_distance_not_the_distance_of_the_means():
+    """``better: closest`` ranks what its paired comparisons compare: the frame-weighted mean of
+    ``|accel - gt_accel|`` per sequence. A prior too smooth on two sequences and too lively on the
+    other two has the ground truth's mean acceleration while being far from it on every sequence."""
+    gt = (5.0, 6.0, 7.0, 8.0)
+    rows = [
+        {"prior": "no-prior", "cells": [_cell([50, 52, 54, 56], [2.0, 2.5, 3.0, 3.5], gt)]},
+        {"prior": "swinging", "cells": [_cell([45, 46, 47, 48], [1.0, 2.0, 11.0, 12.0], gt)]},  # mean 6.5 = gt's, 4 away each
+        {"prior": "close", "cells": [_cell([45, 46, 47, 48], [5.5, 6.5, 7.5, 8.5], gt)]},  # mean 7.0, 0.5 away each
+    ]
+    add_paired(rows, [{"gap": 5}], METRICS, table_seed=0)
+    cells = {r["prior"]: r["cells"][0] for r in rows}
+    assert "best" not in cells["close"]["paired"]["accel_mps2"]
+    swinging = cells["swinging"]["paired"]["accel_mps2"]["best"]
+    assert swinging["vs"] == "close" and swinging["diff"] == pytest.approx(4.0 - 0.5) and swinging["better"] is False

@@ -32,7 +32,8 @@ INTERVAL_DEFINITION = (f"{LEVEL:.0%} percentile bootstrap interval of the cell's
 TIMING_NO_INTERVAL = ("a measured time (timing: true): one timing of the work unit's whole batch, shared by its "
                       "sequences, so its spread over sequences says nothing of its uncertainty; no interval and no "
                       "significance")
-PAIRED_DEFINITION = ("per cell and metric, against no-prior and against the cell's best prior by the metric's mean: the "
+PAIRED_DEFINITION = ("per cell and metric, against no-prior and against the cell's best prior by the metric's mean (for "
+                     "better: closest, by the frame-weighted mean of the per-sequence distances to its reference): the "
                      "frame-weighted mean of the per-sequence differences (this prior minus the other) over the "
                      f"sequences both cells have, its {LEVEL:.0%} paired bootstrap interval (sequence indices resampled "
                      "jointly), whether the interval excludes 0 (significant), and whether this prior does better; "
@@ -272,16 +273,10 @@ def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], tabl
             name, ref_name = m["name"], m.get("reference")
             if m["better"] == "none":  # a reference figure: never ranked
                 continue
-            have = {row["prior"]: row["cells"][j] for row in rows
-                    if not row["cells"][j].get("na_reason") and row["cells"][j].get(name) is not None
-                    and name in (row["cells"][j].get("per_sequence") or {})
-                    and (ref_name is None or ref_name in row["cells"][j]["per_sequence"])}
+            have = ranked_cells(rows, j, m)
             if not have:
                 continue
-            if ref_name is not None:  # closest to the reference: compared by the distance to it
-                best = min(have, key=lambda p: abs(have[p][name] - have[p][ref_name]))
-            else:
-                best = (min if m["better"] == "lower" else max)(have, key=lambda p: have[p][name])  # ties: the first row
+            best = best_prior(have, m)
             for prior, cell in have.items():
                 refs = {}
                 if prior != NO_PRIOR and NO_PRIOR in have:
@@ -302,6 +297,32 @@ def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], tabl
                         comparisons[role] = comparison
                 if comparisons:
                     cell.setdefault("paired", {})[name] = comparisons
+
+
+def ranked_cells(rows: list[Mapping], j: int, metric: Mapping) -> dict[str, Mapping]:
+    """Prior -> its cell ``j``, for the rows whose cell can be ranked on ``metric`` (a served number
+    with its per-sequence values, and its reference's for ``better: closest``), in row order."""
+    name, ref_name = metric["name"], metric.get("reference")
+    return {row["prior"]: row["cells"][j] for row in rows
+            if not row["cells"][j].get("na_reason") and row["cells"][j].get(name) is not None
+            and name in (row["cells"][j].get("per_sequence") or {})
+            and (ref_name is None or ref_name in row["cells"][j]["per_sequence"])}
+
+
+def best_prior(have: Mapping[str, Mapping], metric: Mapping) -> str | None:
+    """The best of ``have`` (:func:`ranked_cells`) on ``metric``: the lowest or highest mean, or for
+    ``better: closest`` the lowest frame-weighted mean of the per-sequence distances to the
+    reference (what its paired comparisons compare, not the distance between the two means); ties:
+    the first row. None for ``better: none`` or no cell."""
+    if metric.get("better", "lower") == "none" or not have:
+        return None
+    name, ref_name = metric["name"], metric.get("reference")
+    if ref_name is not None:
+        def distance(prior):
+            per = _distances(have[prior]["per_sequence"], name, ref_name)
+            return weighted_mean(per[name], per["frames"])
+        return min(have, key=distance)
+    return (min if metric.get("better", "lower") == "lower" else max)(have, key=lambda p: have[p][name])
 
 
 def _distances(per_sequence: Mapping, metric: str, reference: str | None) -> Mapping:
