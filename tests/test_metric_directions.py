@@ -3,6 +3,8 @@ never ranked (``better: none``), a table's own compare tolerance and measured ti
 tables from denoise / inbetween v2, reconstruction v3)."""
 
 import copy
+import csv
+import io
 
 import pytest
 
@@ -128,3 +130,19 @@ def test_closest_ranks_by_the_mean_per_sequence_distance_not_the_distance_of_the
     assert "best" not in cells["close"]["paired"]["accel_mps2"]
     swinging = cells["swinging"]["paired"]["accel_mps2"]["best"]
     assert swinging["vs"] == "close" and swinging["diff"] == pytest.approx(4.0 - 0.5) and swinging["better"] is False
+
+
+def test_csv_names_the_best_prior_even_when_no_comparison_against_it_was_made():
+    """The best prior's row was merged from another observation (its fingerprint): nobody is paired
+    with it, and the CSV must still name it, not whichever row happens to hold a comparison."""
+    from benchmark.run.csv_format import format_csv
+
+    rows = _rows()
+    for r, fp in zip(rows, ("obs-a", "obs-a", "obs-b")):
+        r["cells"][0].update(gap=5, sequences=4, frames=40, fingerprint=fp)
+    add_paired(rows, [{"gap": 5}], METRICS, table_seed=0)
+    out = list(csv.DictReader(io.StringIO(format_csv(_table(rows, METRICS)))))
+    best = {(r["prior"], r["metric"]): r["best_prior"] for r in out}
+    assert best[("smooth", "mpjpe_mm")] == "smooth"  # the lowest MPJPE
+    assert best[("no-prior", "accel_mps2")] == "lively" and best[("smooth", "accel_mps2")] == "lively"
+    assert best[("smooth", "gt_accel_mps2")] == ""  # a reference: never ranked
