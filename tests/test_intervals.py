@@ -276,3 +276,30 @@ def test_a_measured_time_gets_no_interval_and_no_significance():
     rows = list(csv.DictReader(io.StringIO(format_csv(table))))
     timed = next(r for r in rows if r["prior"] == "vposer-slerp" and r["metric"] == "time_per_frame_s")
     assert timed["ci95_lo"] == "" and timed["vs_no_prior_significant"] == "" and timed["vs_no_prior_better"] == "true"
+
+
+# ---------------------------------------------------------------- few sequences
+
+@pytest.mark.parametrize("n", [2, 3, 5])
+def test_too_few_sequences_claim_no_significance(n):
+    """An interval of n same-sign differences excludes 0 whatever their size (noise does it with
+    probability 2 / 2**n): 2 to 5 sequences keep the difference and its interval, never a †."""
+    units = plan(priors=PRIORS, seqs=SEQS[:n], prof=profile(batch_sequences=n))
+    results = [FakeExecutor()(u) for u in units]
+    for r in results:  # hmvae clearly better on every sequence: the interval excludes 0
+        for row in r["per_sequence"]:
+            row["sums"]["chamfer_m"] *= 0.5 if r["prior"] == "hmvae" else 1.0
+    table = derive_table(table_spec(), results, meta(units, prof=profile(batch_sequences=n)))
+    c = _cell(table, "hmvae")["paired"]["chamfer_mm"]["no_prior"]
+    assert c["sequences"] == n and c["ci95"][1] < 0 and c["better"] is True
+    assert c["significant"] is None and f"{n} sequences in common" in c["ci_na"]
+    row = next(l for l in format_markdown(table).splitlines() if l.startswith("| hmvae |"))
+    assert SIGNIFICANT_MARK not in row and "[" in row  # the interval is shown, the mark is not
+    assert next(r for r in csv.DictReader(io.StringIO(format_csv(table)))
+                if r["prior"] == "hmvae" and r["metric"] == "chamfer_mm")["vs_no_prior_significant"] == ""
+
+
+def test_six_sequences_can_be_significant():
+    table = _derive(seqs=SEQS[:6], scale={"hmvae": 0.5})
+    c = _cell(table, "hmvae")["paired"]["chamfer_mm"]["no_prior"]
+    assert c["sequences"] == 6 and c["significant"] is True and "ci_na" not in c

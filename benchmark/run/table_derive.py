@@ -16,7 +16,8 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from benchmark.core.fit_diagnostics import cell_diagnostics
-from benchmark.core.intervals import LEVEL, RESAMPLES, bootstrap_ci, excludes_zero, paired_bootstrap, weighted_mean
+from benchmark.core.intervals import (LEVEL, MIN_SIGNIFICANCE_SEQUENCES, RESAMPLES, bootstrap_ci, excludes_zero,
+                                      paired_bootstrap, weighted_mean)
 from benchmark.core.json_io import canonical_json
 from benchmark.run.same_cells import copy_same_cells, same_cells
 from benchmark.core.work_units import (TABLE_FORMAT_VERSION, WorkUnit, spec_field, grid_cells, metric_specs,
@@ -36,8 +37,9 @@ PAIRED_DEFINITION = ("per cell and metric, against no-prior and against the cell
                      "better: closest, by the frame-weighted mean of the per-sequence distances to its reference): the "
                      "frame-weighted mean of the per-sequence differences (this prior minus the other) over the "
                      f"sequences both cells have, its {LEVEL:.0%} paired bootstrap interval (sequence indices resampled "
-                     "jointly), whether the interval excludes 0 (significant), and whether this prior does better; "
-                     "for a measured time (timing: true) the difference alone")
+                     "jointly), whether the interval excludes 0 (significant; claimed from "
+                     f"{MIN_SIGNIFICANCE_SEQUENCES} sequences in common), and whether this prior does better; for a "
+                     "measured time (timing: true) the difference alone")
 SEED_RULE = ("numpy.random.default_rng(stable_seed('bootstrap', seed, prior, cell, metric)) for a cell's interval, "
              "stable_seed('paired', seed, prior, vs, cell, metric) for a paired comparison; seed: the table's seed, "
              "cell: the canonical JSON of its grid coordinates (benchmark.core.work_units.stable_seed)")
@@ -352,6 +354,11 @@ def _paired(a: Mapping, b: Mapping, metric: str, better: str, vs: str, rng: np.r
     else:
         diff, ci = paired_bootstrap(va, vb, w, rng)
         out.update(diff=diff, ci95=list(ci), significant=excludes_zero(ci))
+        if len(pairs) < MIN_SIGNIFICANCE_SEQUENCES:
+            out.update(significant=None, ci_na=(
+                f"{len(pairs)} sequences in common: too few to call a difference significant (an interval of "
+                f"{len(pairs)} same-sign differences excludes 0 by chance with probability {2.0 ** (1 - len(pairs)):.0%}); "
+                f"needs {MIN_SIGNIFICANCE_SEQUENCES}"))
     gain = -out["diff"] if better == "lower" else out["diff"]
     out["better"] = None if gain == 0 else bool(gain > 0)
     return out
