@@ -303,3 +303,14 @@ def test_six_sequences_can_be_significant():
     table = _derive(seqs=SEQS[:6], scale={"hmvae": 0.5})
     c = _cell(table, "hmvae")["paired"]["chamfer_mm"]["no_prior"]
     assert c["sequences"] == 6 and c["significant"] is True and "ci_na" not in c
+
+
+def test_headers_say_the_mean_is_over_the_scored_frames(table):
+    """In-betweening scores the missing frames, sls its anchors: a header promising "all output
+    frames" misdescribes them. Markdown and LaTeX say what the derivation averages."""
+    from benchmark.run.writers import MEAN_TEXT
+
+    md, tex = format_markdown(table), format_latex(table)
+    assert f"Each number: {MEAN_TEXT}, then in brackets" in md and MEAN_TEXT in tex
+    assert "output frames of all sequences" not in md + tex
+    assert "interval of that frame-weighted mean" in md and "6 sequences in common" in md

@@ -23,6 +23,7 @@ from typing import Mapping, Sequence
 
 from benchmark.core.fit_diagnostics import (BACKWARDS_DEG, CONVERGED_MAX_DECREASE, CONVERGENCE_WINDOW, FLAG, MISORIENTED_DEG,
                                       cell_flagged)
+from benchmark.core.intervals import MIN_SIGNIFICANCE_SEQUENCES
 from benchmark.core.json_io import atomic_write_json, atomic_write_text
 from benchmark.core.work_units import grid_axes
 from benchmark.run.csv_format import format_csv
@@ -31,6 +32,10 @@ from benchmark.run.table_derive import NO_PRIOR, cell_reason, metric_unit
 log = logging.getLogger(__name__)
 
 FORMATS = ("json", "md", "csv", "tex")
+# What a cell's number averages: every frame a metric scores (all output frames, or those its
+# description names: in-betweening's missing frames, sls's anchors), each sequence weighted by them.
+MEAN_TEXT = ("mean over every scored frame of every sequence (the output frames, or those the metric's description "
+             "names), a frame-weighted mean")
 SIGNIFICANT_MARK = "†"  # a cell whose win over no-prior is significant (paired interval excludes 0)
 ARROWS = {"lower": "↓", "higher": "↑"}
 TEX_ARROWS = {"lower": r"$\downarrow$", "higher": r"$\uparrow$"}
@@ -138,11 +143,12 @@ def same_label(same: Mapping) -> str:
 def interval_note(table: Mapping) -> str:
     """The sentence under each Markdown table: what the brackets and the mark mean."""
     level = (table.get("bootstrap") or {}).get("level", 0.95)
-    text = (f"In brackets: the {level:.0%} bootstrap interval of the mean over sequences (none for a cell of one "
-            "sequence).")
+    text = (f"In brackets: the {level:.0%} bootstrap interval of that frame-weighted mean, its sequences resampled "
+            "(none for a cell of one sequence or for a measured time).")
     if any(r["prior"] == NO_PRIOR for r in table["rows"]):
         text += (f" {SIGNIFICANT_MARK}: better than `{NO_PRIOR}` in this cell, the paired {level:.0%} bootstrap "
-                 "interval of the per-sequence difference excluding 0.")
+                 f"interval of the per-sequence difference excluding 0 (claimed from {MIN_SIGNIFICANCE_SEQUENCES} "
+                 "sequences in common).")
     else:
         text += f" No `{NO_PRIOR}` row: no cell is marked as a significant win over it."
     return text
@@ -267,10 +273,10 @@ def format_markdown(table: Mapping) -> str:
         lines += ["", f"> **Warning.** {warning}"]
     intervals = has_intervals(table)
     if intervals:
-        lines += ["", "Each number: mean over all output frames of all sequences, then in brackets its "
+        lines += ["", f"Each number: {MEAN_TEXT}, then in brackets its "
                       f"{table.get('interval_definition', 'bootstrap interval over sequences')}."]
     else:
-        lines += ["", f"Each number: mean over all output frames of all sequences ± {table.get('std_definition', 'standard deviation over sequences')}."]
+        lines += ["", f"Each number: {MEAN_TEXT} ± {table.get('std_definition', 'standard deviation over sequences')}."]
 
     for metric in _metrics_in_order(table):
         name = metric["name"]
@@ -372,7 +378,7 @@ def format_latex(table: Mapping) -> str:
     out = [f"% {table.get('title', table['table'])}",
            f"% table {table['table']}, protocol version {table['protocol_version']}, profile {table['profile']}, "
            f"device {table['device']}, seed {table['seed']}",
-           f"% {metric_label(name)}: mean over all output frames of all sequences"]
+           f"% {metric_label(name)}: {MEAN_TEXT}"]
     intervals = has_intervals(table)
     level = (table.get("bootstrap") or {}).get("level", 0.95)
     if intervals:
@@ -412,7 +418,7 @@ def format_latex(table: Mapping) -> str:
     if intervals:
         note = (rf"In brackets: {level * 100:.0f}\% bootstrap interval over sequences. "
                 + (rf"$^\dagger$ better than {tex_escape(NO_PRIOR)}, paired {level * 100:.0f}\% interval of the "
-                   "difference excluding 0." if any(r["prior"] == NO_PRIOR for r in rows) else ""))
+                   rf"difference excluding 0 (from {MIN_SIGNIFICANCE_SEQUENCES} sequences)." if any(r["prior"] == NO_PRIOR for r in rows) else ""))
         out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize {note.strip()}}} \\")
     for reason, k in marks.items():
         out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize $^{{{k}}}$ {tex_escape(reason)}}} \\")
