@@ -314,3 +314,13 @@ def test_headers_say_the_mean_is_over_the_scored_frames(table):
     assert f"Each number: {MEAN_TEXT}, then in brackets" in md and MEAN_TEXT in tex
     assert "output frames of all sequences" not in md + tex
     assert "interval of that frame-weighted mean" in md and "6 sequences in common" in md
+
+
+def test_a_sum_that_overflows_in_reported_units_is_a_clear_error():
+    """A finite SI sum (1e307 m) is inf in mm: an error naming the unit, the sequence and the sum,
+    not an AttributeError from the standard deviation."""
+    units = plan(priors=PRIORS, seqs=SEQS[:2], prof=profile(batch_sequences=2))
+    results = [FakeExecutor()(u) for u in units]
+    results[0]["per_sequence"][1]["sums"]["chamfer_m"] = 1e307
+    with pytest.raises(ValueError, match=rf"result {results[0]['unit_id']}: sequence 's1': sums\['chamfer_m'\] = 1e\+307"):
+        derive_table(table_spec(), results, meta(units, prof=profile(batch_sequences=2)))

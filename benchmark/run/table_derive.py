@@ -240,6 +240,7 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
         total = math.fsum(row["sums"][key] for row in seqs)
         out[name] = factor * total / sum(frames)
         per_seq = sequence_values(seqs, name)
+        _check_finite(cell, done, seqs, per_seq, out[name], key, name)
         out[f"{name}_std"] = statistics.pstdev(per_seq) if len(per_seq) > 1 else 0.0
         if m.get("timing"):
             out[f"{name}_ci95"] = None
@@ -264,6 +265,20 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
         out["ci_na"] = ci_na
     out["per_sequence"] = per_sequence
     return out
+
+
+def _check_finite(cell, done, seqs, per_seq, mean, key: str, name: str) -> None:
+    """Refuse a sequence (or cell) value that is not finite in reported units: a finite SI sum can
+    overflow once converted (``1e307`` m is ``inf`` mm); the message names the unit and the sequence."""
+    for row, value in zip(seqs, per_seq):
+        if not math.isfinite(value):
+            unit = next((r["unit_id"] for r in done if any(x is row for x in r["per_sequence"])), "?")
+            raise ValueError(f"result {unit}: sequence {row['id']!r}: sums[{key!r}] = {row['sums'][key]!r} over "
+                             f"{row['frames']} frames is {value!r} {name}, not a finite number; the unit result is "
+                             "corrupt: delete it and rerun the unit")
+    if not math.isfinite(mean):
+        raise ValueError(f"cell {dict(cell)}: {name} = {mean!r} over its sequences, not a finite number "
+                         f"(sums[{key!r}] too large); its unit results are corrupt: rerun them")
 
 
 def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], table_seed) -> None:
