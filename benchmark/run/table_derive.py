@@ -73,8 +73,8 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
         files: counts of reused / recomputed / moved aside; kept in ``provenance["resume"]``). The table also records each prior's identity as
         planned (``prior_info``: name, size, weights hash...).
 
-    Each cell holds its grid coordinates, then per metric (unit in the name): the mean over all
-    output frames of all sequences (``total sum / total frames``, in reported units) and
+    Each cell holds its grid coordinates, then per metric (unit in the name): the mean over every
+    scored frame of all sequences (``total sum / total frames``, in reported units) and
     ``<metric>_std`` (:data:`STD_DEFINITION`), plus ``sequences``, ``frames``, ``units``,
     ``fingerprint`` (sha256 of the sorted unit fingerprints). A cell missing any unit has
     ``na_reason: "incomplete: k of n units"`` and no metrics; a cell whose units report n/a has
@@ -82,7 +82,7 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
 
     Uncertainty (:mod:`benchmark.core.intervals`, seeded by :data:`SEED_RULE`): ``<metric>_ci95``,
     ``[lo, hi]`` (:data:`INTERVAL_DEFINITION`; ``null`` with the reason in ``ci_na`` below 2
-    sequences); ``per_sequence``, the values the intervals come from (``{"id": [...], "frames":
+    sequences or for a ``timing`` metric); ``per_sequence``, the values the intervals come from (``{"id": [...], "frames":
     [...], "<metric>": [...]}``, aligned lists, reported units); ``paired`` (:data:`PAIRED_DEFINITION`):
     metric -> ``{"no_prior": comparison, "best": comparison}`` (each where it applies), a comparison
     being ``{"vs", "sequences", "diff", "ci95", "significant", "better"}``.
