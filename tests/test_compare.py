@@ -209,3 +209,16 @@ def test_malformed_tables_are_refused_by_field_never_ok():
     big["rows"][0]["cells"][0]["mpjpe_mm"] = 10 ** 400
     with pytest.raises(ValueError, match="not a finite number"):
         compare_tables(table, big)
+
+
+def test_other_test_sequences_are_reported(base):
+    """A run on other sequences averages another test set: within tolerance or not, the report says so."""
+    a, b = copy.deepcopy(base), copy.deepcopy(base)
+    a["sequences"], b["sequences"] = ["s0", "s1", "s2"], ["s0", "s1", "s9"]
+    ok, rows = compare_tables(a, b)
+    header = {r["field"]: r for r in rows if r["kind"] == "header"}
+    assert ok and header["sequences"]["status"] == "note"
+    assert header["sequences"]["a"] == "3 sequences, 1 not in B (s2)" and header["sequences"]["b"] == "3 sequences, 1 not in A (s9)"
+    assert "note  sequences differs" in format_report(ok, rows)
+    _, rows = compare_tables(a, copy.deepcopy(a))
+    assert not [r for r in rows if r["kind"] == "header"]

@@ -241,3 +241,86 @@ def test_report_table_and_error_bars(table):
     assert bars.shape == (2, 6)
     assert bars[:, 0] == pytest.approx([c["chamfer_mm"] - c["chamfer_mm_ci95"][0], c["chamfer_mm_ci95"][1] - c["chamfer_mm"]])
     assert error_bars(old["rows"][2]["cells"], "chamfer_mm")[:, 0] == pytest.approx([c["chamfer_mm_std"]] * 2)
+
+
+# ---------------------------------------------------------------- measured times
+
+def _timed_table():
+    """A table with a measured time (``timing: true``): one time per frame per unit, as the denoise
+    protocol records it (the batch's seconds shared by its sequences)."""
+    spec = table_spec()
+    spec["metrics"] = list(spec["metrics"]) + [{"name": "time_per_frame_s", "better": "lower", "timing": True}]
+    units = plan(spec=spec, priors=PRIORS, seqs=SEQS[:4])
+    results = [FakeExecutor()(u) for u in units]
+    per_frame = {"no-prior": 0.2, "vposer-slerp": 0.1, "hmvae": 0.3}
+    for r in results:
+        for row in r["per_sequence"]:
+            row["sums"]["time_per_frame_s"] = per_frame[r["prior"]] * row["frames"]
+    return derive_table(spec, results, meta(units))
+
+
+def test_a_measured_time_gets_no_interval_and_no_significance():
+    table = _timed_table()
+    cell = _cell(table, "vposer-slerp")
+    assert cell["time_per_frame_s"] == pytest.approx(0.1)
+    # the batch's one timing repeated per sequence is no sample: no [0.1, 0.1] interval, no †
+    assert cell["time_per_frame_s_ci95"] is None and "measured time" in cell["ci_na"]["time_per_frame_s"]
+    c = cell["paired"]["time_per_frame_s"]["no_prior"]
+    assert c["diff"] == pytest.approx(-0.1) and c["better"] is True
+    assert c["ci95"] is None and c["significant"] is None and "measured time" in c["ci_na"]
+    assert cell["chamfer_mm_ci95"] is not None  # the other metrics keep theirs
+    md = format_markdown(table)
+    section = md.split("## Time per frame (s)")[1].split("## ")[0]
+    row = next(l for l in section.splitlines() if l.startswith("| vposer-slerp |"))
+    assert row.split(" | ")[1] == "0.1" and SIGNIFICANT_MARK not in row
+    rows = list(csv.DictReader(io.StringIO(format_csv(table))))
+    timed = next(r for r in rows if r["prior"] == "vposer-slerp" and r["metric"] == "time_per_frame_s")
+    assert timed["ci95_lo"] == "" and timed["vs_no_prior_significant"] == "" and timed["vs_no_prior_better"] == "true"
+
+
+# ---------------------------------------------------------------- few sequences
+
+@pytest.mark.parametrize("n", [2, 3, 5])
+def test_too_few_sequences_claim_no_significance(n):
+    """An interval of n same-sign differences excludes 0 whatever their size (noise does it with
+    probability 2 / 2**n): 2 to 5 sequences keep the difference and its interval, never a †."""
+    units = plan(priors=PRIORS, seqs=SEQS[:n], prof=profile(batch_sequences=n))
+    results = [FakeExecutor()(u) for u in units]
+    for r in results:  # hmvae clearly better on every sequence: the interval excludes 0
+        for row in r["per_sequence"]:
+            row["sums"]["chamfer_m"] *= 0.5 if r["prior"] == "hmvae" else 1.0
+    table = derive_table(table_spec(), results, meta(units, prof=profile(batch_sequences=n)))
+    c = _cell(table, "hmvae")["paired"]["chamfer_mm"]["no_prior"]
+    assert c["sequences"] == n and c["ci95"][1] < 0 and c["better"] is True
+    assert c["significant"] is None and f"{n} sequences in common" in c["ci_na"]
+    row = next(l for l in format_markdown(table).splitlines() if l.startswith("| hmvae |"))
+    assert SIGNIFICANT_MARK not in row and "[" in row  # the interval is shown, the mark is not
+    assert next(r for r in csv.DictReader(io.StringIO(format_csv(table)))
+                if r["prior"] == "hmvae" and r["metric"] == "chamfer_mm")["vs_no_prior_significant"] == ""
+
+
+def test_six_sequences_can_be_significant():
+    table = _derive(seqs=SEQS[:6], scale={"hmvae": 0.5})
+    c = _cell(table, "hmvae")["paired"]["chamfer_mm"]["no_prior"]
+    assert c["sequences"] == 6 and c["significant"] is True and "ci_na" not in c
+
+
+def test_headers_say_the_mean_is_frame_weighted_over_the_scored_frames(table):
+    """Markdown and LaTeX say what the derivation averages: a frame-weighted mean over the frames
+    the table scores (its spec's scored_frames; test_metric_directions checks inbetween's)."""
+    from benchmark.run.writers import averaged_over
+
+    md, tex = format_markdown(table), format_latex(table)
+    assert averaged_over(table).startswith("mean over all output frames of all sequences (a frame-weighted mean")
+    assert f"Each number: {averaged_over(table)}, then in brackets" in md and averaged_over(table) in tex
+    assert "interval of that frame-weighted mean" in md and "6 sequences in common" in md
+
+
+def test_a_sum_that_overflows_in_reported_units_is_a_clear_error():
+    """A finite SI sum (1e307 m) is inf in mm: an error naming the unit, the sequence and the sum,
+    not an AttributeError from the standard deviation."""
+    units = plan(priors=PRIORS, seqs=SEQS[:2], prof=profile(batch_sequences=2))
+    results = [FakeExecutor()(u) for u in units]
+    results[0]["per_sequence"][1]["sums"]["chamfer_m"] = 1e307
+    with pytest.raises(ValueError, match=rf"result {results[0]['unit_id']}: sequence 's1': sums\['chamfer_m'\] = 1e\+307"):
+        derive_table(table_spec(), results, meta(units, prof=profile(batch_sequences=2)))

@@ -3,6 +3,8 @@ never ranked (``better: none``), a table's own compare tolerance and measured ti
 tables from denoise / inbetween v2, reconstruction v3)."""
 
 import copy
+import csv
+import io
 
 import pytest
 
@@ -41,7 +43,8 @@ def test_closest_is_ranked_by_the_distance_to_its_reference_and_none_is_never_ra
     assert cells["smooth"]["paired"]["accel_mps2"]["best"]["vs"] == "lively"
     assert "best" not in cells["lively"]["paired"]["accel_mps2"]
     lively = cells["lively"]["paired"]["accel_mps2"]["no_prior"]
-    assert lively["better"] is True and lively["significant"] is True and lively["diff"] < 0  # distance minus distance
+    assert lively["better"] is True and lively["diff"] < 0  # distance minus distance
+    assert lively["ci95"][1] < 0 and lively["significant"] is None  # 4 sequences: too few to claim it
     assert cells["smooth"]["paired"]["accel_mps2"]["no_prior"]["better"] is False
     # plain "lower" metrics are unchanged; the reference column gets no comparison at all
     assert cells["smooth"]["paired"]["mpjpe_mm"]["no_prior"]["better"] is True
@@ -128,3 +131,36 @@ def test_headers_say_which_frames_a_number_averages():
     for text in (format_markdown(table), format_latex(table)):
         assert "mean over the missing frames (the gap) of all sequences" in text
         assert "all output frames" not in text
+
+
+def test_closest_ranks_by_the_mean_per_sequence_distance_not_the_distance_of_the_means():
+    """``better: closest`` ranks what its paired comparisons compare: the frame-weighted mean of
+    ``|accel - gt_accel|`` per sequence. A prior too smooth on two sequences and too lively on the
+    other two has the ground truth's mean acceleration while being far from it on every sequence."""
+    gt = (5.0, 6.0, 7.0, 8.0)
+    rows = [
+        {"prior": "no-prior", "cells": [_cell([50, 52, 54, 56], [2.0, 2.5, 3.0, 3.5], gt)]},
+        {"prior": "swinging", "cells": [_cell([45, 46, 47, 48], [1.0, 2.0, 11.0, 12.0], gt)]},  # mean 6.5 = gt's, 4 away each
+        {"prior": "close", "cells": [_cell([45, 46, 47, 48], [5.5, 6.5, 7.5, 8.5], gt)]},  # mean 7.0, 0.5 away each
+    ]
+    add_paired(rows, [{"gap": 5}], METRICS, table_seed=0)
+    cells = {r["prior"]: r["cells"][0] for r in rows}
+    assert "best" not in cells["close"]["paired"]["accel_mps2"]
+    swinging = cells["swinging"]["paired"]["accel_mps2"]["best"]
+    assert swinging["vs"] == "close" and swinging["diff"] == pytest.approx(4.0 - 0.5) and swinging["better"] is False
+
+
+def test_csv_names_the_best_prior_even_when_no_comparison_against_it_was_made():
+    """The best prior's row was merged from another observation (its fingerprint): nobody is paired
+    with it, and the CSV must still name it, not whichever row happens to hold a comparison."""
+    from benchmark.run.csv_format import format_csv
+
+    rows = _rows()
+    for r, fp in zip(rows, ("obs-a", "obs-a", "obs-b")):
+        r["cells"][0].update(gap=5, sequences=4, frames=40, fingerprint=fp)
+    add_paired(rows, [{"gap": 5}], METRICS, table_seed=0)
+    out = list(csv.DictReader(io.StringIO(format_csv(_table(rows, METRICS)))))
+    best = {(r["prior"], r["metric"]): r["best_prior"] for r in out}
+    assert best[("smooth", "mpjpe_mm")] == "smooth"  # the lowest MPJPE
+    assert best[("no-prior", "accel_mps2")] == "lively" and best[("smooth", "accel_mps2")] == "lively"
+    assert best[("smooth", "gt_accel_mps2")] == ""  # a reference: never ranked

@@ -21,6 +21,12 @@ import numpy as np
 
 RESAMPLES = 2000  # bootstrap resamples per interval
 LEVEL = 0.95  # the intervals' coverage
+# The fewest paired sequences a significance claim needs. A percentile bootstrap interval of the
+# differences excludes 0 whenever every difference has the same sign, at any count; with n sequences
+# whose differences are signs of noise that happens with probability 2 / 2**n, above 5 % for n <= 5
+# (50 % with 2 sequences). Below this count a comparison keeps its difference and interval and
+# claims no significance.
+MIN_SIGNIFICANCE_SEQUENCES = 6
 
 
 def _check(values, weights, what: str) -> tuple[np.ndarray, np.ndarray]:

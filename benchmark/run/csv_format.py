@@ -8,7 +8,7 @@ import io
 from typing import Mapping
 
 from benchmark.core.work_units import grid_axes
-from benchmark.run.table_derive import cell_reason, metric_unit
+from benchmark.run.table_derive import best_prior, cell_reason, metric_unit, ranked_cells
 
 
 PAIRED_ROLES = {"no_prior": "vs_no_prior", "best": "vs_best"}  # cell["paired"][metric] key -> CSV column prefix
@@ -64,16 +64,14 @@ def format_csv(table: Mapping) -> str:
 
 
 def _best_priors(table: Mapping) -> dict[tuple[int, str], str]:
-    """(cell index, metric) -> the cell's best prior, as the paired comparisons name it (empty for a
-    table derived before them)."""
+    """(cell index, metric) -> the cell's best prior by the rule of the paired comparisons
+    (:func:`benchmark.run.table_derive.best_prior`), whether or not a comparison against it was
+    made (cells seen on another observation are not paired); empty for a table derived before them."""
     out = {}
-    for row in table["rows"]:
-        for j, cell in enumerate(row["cells"]):
-            for metric, roles in (cell.get("paired") or {}).items():
-                if (roles or {}).get("best"):
-                    out[(j, metric)] = roles["best"]["vs"]
-    for row in table["rows"]:  # the best prior itself has no comparison against the best
-        for j, cell in enumerate(row["cells"]):
-            for metric in cell.get("paired") or {}:
-                out.setdefault((j, metric), row["prior"])
+    rows = table["rows"]
+    for j in range(len(rows[0]["cells"]) if rows else 0):
+        for metric in table["metrics"]:
+            best = best_prior(ranked_cells(rows, j, metric), metric)
+            if best is not None:
+                out[(j, metric["name"])] = best
     return out

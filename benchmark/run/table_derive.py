@@ -16,7 +16,8 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from benchmark.core.fit_diagnostics import cell_diagnostics
-from benchmark.core.intervals import LEVEL, RESAMPLES, bootstrap_ci, excludes_zero, paired_bootstrap, weighted_mean
+from benchmark.core.intervals import (LEVEL, MIN_SIGNIFICANCE_SEQUENCES, RESAMPLES, bootstrap_ci, excludes_zero,
+                                      paired_bootstrap, weighted_mean)
 from benchmark.core.json_io import canonical_json
 from benchmark.run.same_cells import copy_same_cells, same_cells
 from benchmark.core.work_units import (TABLE_FORMAT_VERSION, WorkUnit, spec_field, grid_cells, metric_specs,
@@ -28,11 +29,17 @@ log = logging.getLogger("benchmark.results")  # the name it had before the split
 STD_DEFINITION = "population standard deviation (ddof=0) over sequences of the per-sequence means"
 INTERVAL_DEFINITION = (f"{LEVEL:.0%} percentile bootstrap interval of the cell's frame-weighted mean: its sequences "
                        f"(each with its mean and its frames) resampled with replacement, {RESAMPLES} times; none with "
-                       "fewer than 2 sequences")
-PAIRED_DEFINITION = ("per cell and metric, against no-prior and against the cell's best prior by the metric's mean: the "
+                       "fewer than 2 sequences, none for a measured time (timing: true)")
+TIMING_NO_INTERVAL = ("a measured time (timing: true): one timing of the work unit's whole batch, shared by its "
+                      "sequences, so its spread over sequences says nothing of its uncertainty; no interval and no "
+                      "significance")
+PAIRED_DEFINITION = ("per cell and metric, against no-prior and against the cell's best prior by the metric's mean (for "
+                     "better: closest, by the frame-weighted mean of the per-sequence distances to its reference): the "
                      "frame-weighted mean of the per-sequence differences (this prior minus the other) over the "
                      f"sequences both cells have, its {LEVEL:.0%} paired bootstrap interval (sequence indices resampled "
-                     "jointly), whether the interval excludes 0 (significant), and whether this prior does better")
+                     "jointly), whether the interval excludes 0 (significant; claimed from "
+                     f"{MIN_SIGNIFICANCE_SEQUENCES} sequences in common), and whether this prior does better; for a "
+                     "measured time (timing: true) the difference alone")
 SEED_RULE = ("numpy.random.default_rng(stable_seed('bootstrap', seed, prior, cell, metric)) for a cell's interval, "
              "stable_seed('paired', seed, prior, vs, cell, metric) for a paired comparison; seed: the table's seed, "
              "cell: the canonical JSON of its grid coordinates (benchmark.core.work_units.stable_seed)")
@@ -66,8 +73,8 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
         files: counts of reused / recomputed / moved aside; kept in ``provenance["resume"]``). The table also records each prior's identity as
         planned (``prior_info``: name, size, weights hash...).
 
-    Each cell holds its grid coordinates, then per metric (unit in the name): the mean over all
-    output frames of all sequences (``total sum / total frames``, in reported units) and
+    Each cell holds its grid coordinates, then per metric (unit in the name): the mean over every
+    scored frame of all sequences (``total sum / total frames``, in reported units) and
     ``<metric>_std`` (:data:`STD_DEFINITION`), plus ``sequences``, ``frames``, ``units``,
     ``fingerprint`` (sha256 of the sorted unit fingerprints). A cell missing any unit has
     ``na_reason: "incomplete: k of n units"`` and no metrics; a cell whose units report n/a has
@@ -75,7 +82,7 @@ def derive_table(table_spec: Mapping, unit_results: Iterable[Mapping], meta: Map
 
     Uncertainty (:mod:`benchmark.core.intervals`, seeded by :data:`SEED_RULE`): ``<metric>_ci95``,
     ``[lo, hi]`` (:data:`INTERVAL_DEFINITION`; ``null`` with the reason in ``ci_na`` below 2
-    sequences); ``per_sequence``, the values the intervals come from (``{"id": [...], "frames":
+    sequences or for a ``timing`` metric); ``per_sequence``, the values the intervals come from (``{"id": [...], "frames":
     [...], "<metric>": [...]}``, aligned lists, reported units); ``paired`` (:data:`PAIRED_DEFINITION`):
     metric -> ``{"no_prior": comparison, "best": comparison}`` (each where it applies), a comparison
     being ``{"vs", "sequences", "diff", "ci95", "significant", "better"}``.
@@ -235,8 +242,12 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
         total = math.fsum(row["sums"][key] for row in seqs)
         out[name] = factor * total / sum(frames)
         per_seq = sequence_values(seqs, name)
+        _check_finite(cell, done, seqs, per_seq, out[name], key, name)
         out[f"{name}_std"] = statistics.pstdev(per_seq) if len(per_seq) > 1 else 0.0
-        if len(per_seq) > 1:
+        if m.get("timing"):
+            out[f"{name}_ci95"] = None
+            ci_na[name] = TIMING_NO_INTERVAL
+        elif len(per_seq) > 1:
             rng = np.random.default_rng(stable_seed("bootstrap", *seed_parts, canonical_json(cell), name))
             out[f"{name}_ci95"] = list(bootstrap_ci(per_seq, frames, rng))
         else:
@@ -258,6 +269,20 @@ def _derive_cell(cell: Mapping, n_units: int, done: list[Mapping], metrics: list
     return out
 
 
+def _check_finite(cell, done, seqs, per_seq, mean, key: str, name: str) -> None:
+    """Refuse a sequence (or cell) value that is not finite in reported units: a finite SI sum can
+    overflow once converted (``1e307`` m is ``inf`` mm); the message names the unit and the sequence."""
+    for row, value in zip(seqs, per_seq):
+        if not math.isfinite(value):
+            unit = next((r["unit_id"] for r in done if any(x is row for x in r["per_sequence"])), "?")
+            raise ValueError(f"result {unit}: sequence {row['id']!r}: sums[{key!r}] = {row['sums'][key]!r} over "
+                             f"{row['frames']} frames is {value!r} {name}, not a finite number; the unit result is "
+                             "corrupt: delete it and rerun the unit")
+    if not math.isfinite(mean):
+        raise ValueError(f"cell {dict(cell)}: {name} = {mean!r} over its sequences, not a finite number "
+                         f"(sums[{key!r}] too large); its unit results are corrupt: rerun them")
+
+
 def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], table_seed) -> None:
     """The table-level pass: each cell's ``paired`` comparisons (:data:`PAIRED_DEFINITION`), against
     ``no-prior`` and against the cell's best prior, for every metric with per-sequence values."""
@@ -267,16 +292,10 @@ def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], tabl
             name, ref_name = m["name"], m.get("reference")
             if m["better"] == "none":  # a reference figure: never ranked
                 continue
-            have = {row["prior"]: row["cells"][j] for row in rows
-                    if not row["cells"][j].get("na_reason") and row["cells"][j].get(name) is not None
-                    and name in (row["cells"][j].get("per_sequence") or {})
-                    and (ref_name is None or ref_name in row["cells"][j]["per_sequence"])}
+            have = ranked_cells(rows, j, m)
             if not have:
                 continue
-            if ref_name is not None:  # closest to the reference: compared by the distance to it
-                best = min(have, key=lambda p: abs(have[p][name] - have[p][ref_name]))
-            else:
-                best = (min if m["better"] == "lower" else max)(have, key=lambda p: have[p][name])  # ties: the first row
+            best = best_prior(have, m)
             for prior, cell in have.items():
                 refs = {}
                 if prior != NO_PRIOR and NO_PRIOR in have:
@@ -291,11 +310,38 @@ def add_paired(rows: list[dict], cells: list[Mapping], metrics: list[dict], tabl
                     rng = np.random.default_rng(stable_seed("paired", table_seed, prior, ref, cell_json, name))
                     comparison = _paired(_distances(cell["per_sequence"], name, ref_name),
                                          _distances(have[ref]["per_sequence"], name, ref_name), name,
-                                         "lower" if ref_name else m["better"], ref, rng)
+                                         "lower" if ref_name else m["better"], ref, rng,
+                                         no_interval=TIMING_NO_INTERVAL if m.get("timing") else None)
                     if comparison is not None:
                         comparisons[role] = comparison
                 if comparisons:
                     cell.setdefault("paired", {})[name] = comparisons
+
+
+def ranked_cells(rows: list[Mapping], j: int, metric: Mapping) -> dict[str, Mapping]:
+    """Prior -> its cell ``j``, for the rows whose cell can be ranked on ``metric`` (a served number
+    with its per-sequence values, and its reference's for ``better: closest``), in row order."""
+    name, ref_name = metric["name"], metric.get("reference")
+    return {row["prior"]: row["cells"][j] for row in rows
+            if not row["cells"][j].get("na_reason") and row["cells"][j].get(name) is not None
+            and name in (row["cells"][j].get("per_sequence") or {})
+            and (ref_name is None or ref_name in row["cells"][j]["per_sequence"])}
+
+
+def best_prior(have: Mapping[str, Mapping], metric: Mapping) -> str | None:
+    """The best of ``have`` (:func:`ranked_cells`) on ``metric``: the lowest or highest mean, or for
+    ``better: closest`` the lowest frame-weighted mean of the per-sequence distances to the
+    reference (what its paired comparisons compare, not the distance between the two means); ties:
+    the first row. None for ``better: none`` or no cell."""
+    if metric.get("better", "lower") == "none" or not have:
+        return None
+    name, ref_name = metric["name"], metric.get("reference")
+    if ref_name is not None:
+        def distance(prior):
+            per = _distances(have[prior]["per_sequence"], name, ref_name)
+            return weighted_mean(per[name], per["frames"])
+        return min(have, key=distance)
+    return (min if metric.get("better", "lower") == "lower" else max)(have, key=lambda p: have[p][name])
 
 
 def _distances(per_sequence: Mapping, metric: str, reference: str | None) -> Mapping:
@@ -306,9 +352,11 @@ def _distances(per_sequence: Mapping, metric: str, reference: str | None) -> Map
     return {**per_sequence, metric: [abs(v - r) for v, r in zip(per_sequence[metric], per_sequence[reference])]}
 
 
-def _paired(a: Mapping, b: Mapping, metric: str, better: str, vs: str, rng: np.random.Generator) -> dict | None:
+def _paired(a: Mapping, b: Mapping, metric: str, better: str, vs: str, rng: np.random.Generator,
+            no_interval: str | None = None) -> dict | None:
     """One paired comparison of ``a``'s metric against ``b``'s (``per_sequence`` blocks) over the
-    sequences both have, weighted by ``a``'s frames; None when they share no sequence."""
+    sequences both have, weighted by ``a``'s frames; None when they share no sequence.
+    ``no_interval``: why this metric gets the difference alone (no interval, no significance)."""
     where = {sid: k for k, sid in enumerate(b["id"])}
     pairs = [(i, where[sid]) for i, sid in enumerate(a["id"]) if sid in where]
     if not pairs:
@@ -317,12 +365,17 @@ def _paired(a: Mapping, b: Mapping, metric: str, better: str, vs: str, rng: np.r
     vb = [b[metric][k] for _, k in pairs]
     w = [a["frames"][i] for i, _ in pairs]
     out: dict[str, Any] = {"vs": vs, "sequences": len(pairs)}
-    if len(pairs) < 2:
+    if no_interval is not None or len(pairs) < 2:
         out.update(diff=weighted_mean(np.subtract(va, vb), w), ci95=None, significant=None,
-                   ci_na="1 sequence in common: no interval")
+                   ci_na=no_interval or "1 sequence in common: no interval")
     else:
         diff, ci = paired_bootstrap(va, vb, w, rng)
         out.update(diff=diff, ci95=list(ci), significant=excludes_zero(ci))
+        if len(pairs) < MIN_SIGNIFICANCE_SEQUENCES:
+            out.update(significant=None, ci_na=(
+                f"{len(pairs)} sequences in common: too few to call a difference significant (an interval of "
+                f"{len(pairs)} same-sign differences excludes 0 by chance with probability {2.0 ** (1 - len(pairs)):.0%}); "
+                f"needs {MIN_SIGNIFICANCE_SEQUENCES}"))
     gain = -out["diff"] if better == "lower" else out["diff"]
     out["better"] = None if gain == 0 else bool(gain > 0)
     return out

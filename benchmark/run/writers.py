@@ -23,6 +23,7 @@ from typing import Mapping, Sequence
 
 from benchmark.core.fit_diagnostics import (BACKWARDS_DEG, CONVERGED_MAX_DECREASE, CONVERGENCE_WINDOW, FLAG, MISORIENTED_DEG,
                                       cell_flagged)
+from benchmark.core.intervals import MIN_SIGNIFICANCE_SEQUENCES
 from benchmark.core.json_io import atomic_write_json, atomic_write_text
 from benchmark.core.work_units import grid_axes
 from benchmark.run.csv_format import format_csv
@@ -138,11 +139,12 @@ def same_label(same: Mapping) -> str:
 def interval_note(table: Mapping) -> str:
     """The sentence under each Markdown table: what the brackets and the mark mean."""
     level = (table.get("bootstrap") or {}).get("level", 0.95)
-    text = (f"In brackets: the {level:.0%} bootstrap interval of the mean over sequences (none for a cell of one "
-            "sequence).")
+    text = (f"In brackets: the {level:.0%} bootstrap interval of that frame-weighted mean, its sequences resampled "
+            "(none for a cell of one sequence or for a measured time).")
     if any(r["prior"] == NO_PRIOR for r in table["rows"]):
         text += (f" {SIGNIFICANT_MARK}: better than `{NO_PRIOR}` in this cell, the paired {level:.0%} bootstrap "
-                 "interval of the per-sequence difference excluding 0.")
+                 f"interval of the per-sequence difference excluding 0 (claimed from {MIN_SIGNIFICANCE_SEQUENCES} "
+                 "sequences in common).")
     else:
         text += f" No `{NO_PRIOR}` row: no cell is marked as a significant win over it."
     return text
@@ -238,7 +240,8 @@ def _header_facts(table: Mapping) -> list[str]:
 def averaged_over(table: Mapping) -> str:
     """What a cell's number averages: every output frame of every sequence, unless the table scores
     only some frames (its spec's ``scored_frames``, e.g. inbetween's missing frames)."""
-    return f"mean over {table.get('scored_frames') or 'all output frames'} of all sequences"
+    return (f"mean over {table.get('scored_frames') or 'all output frames'} of all sequences (a frame-weighted "
+            "mean: each sequence weighs by its scored frames)")
 
 
 def profile_warning(table: Mapping) -> str | None:
@@ -418,7 +421,7 @@ def format_latex(table: Mapping) -> str:
     if intervals:
         note = (rf"In brackets: {level * 100:.0f}\% bootstrap interval over sequences. "
                 + (rf"$^\dagger$ better than {tex_escape(NO_PRIOR)}, paired {level * 100:.0f}\% interval of the "
-                   "difference excluding 0." if any(r["prior"] == NO_PRIOR for r in rows) else ""))
+                   rf"difference excluding 0 (from {MIN_SIGNIFICANCE_SEQUENCES} sequences)." if any(r["prior"] == NO_PRIOR for r in rows) else ""))
         out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize {note.strip()}}} \\")
     for reason, k in marks.items():
         out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize $^{{{k}}}$ {tex_escape(reason)}}} \\")

@@ -4,7 +4,7 @@
 A difference is ``B - A``. The comparison fails (exit status 1) when any compared number is out of
 tolerance, a cell or metric is present in one table and not the other, a cell is ``n/a`` in one and
 a number in the other, or the tables differ in what they measure (table, protocol version,
-profile). Differences in seed, device or profile sizes, and cells whose input fingerprint changed
+profile). Differences in seed, device, profile sizes or test sequences, and cells whose input fingerprint changed
 ("the input changed", as opposed to "the model changed"), are reported but do not fail by themselves.
 
 Default tolerances: the table's own for a metric (its spec's ``tolerance``), else by the unit
@@ -160,6 +160,10 @@ def compare_tables(a: Mapping, b: Mapping, tolerances: Mapping[str, float] | Non
     for field in NOTE_IF_DIFFERENT:
         if a.get(field) != b.get(field):
             rows.append({"kind": "header", "field": field, "a": a.get(field), "b": b.get(field), "status": "note", "ok": True})
+    seq_a, seq_b = _sequence_ids(a), _sequence_ids(b)
+    if seq_a is not None and seq_b is not None and seq_a != seq_b:  # another test set: its cells average other sequences
+        rows.append({"kind": "header", "field": "sequences", "a": _sequences_text(seq_a, seq_b, "B"),
+                     "b": _sequences_text(seq_b, seq_a, "A"), "status": "note", "ok": True})
 
     names = list(dict.fromkeys([m["name"] for m in a["metrics"]] + [m["name"] for m in b["metrics"]]))
     known = set(names) | {f"{n}_std" for n in names}
@@ -213,6 +217,21 @@ def compare_tables(a: Mapping, b: Mapping, tolerances: Mapping[str, float] | Non
     for row in rows:
         row.setdefault("ok", row["status"] not in FAILING)
     return all(r["ok"] for r in rows), rows
+
+
+def _sequence_ids(table: Mapping) -> set[str] | None:
+    """The test sequences a table ran: its ``sequences``, else those its cells' ``per_sequence`` name."""
+    if isinstance(table.get("sequences"), list):
+        return set(map(str, table["sequences"]))
+    ids = {str(i) for row in table["rows"] for c in row["cells"] if isinstance(c, Mapping)
+           for i in ((c.get("per_sequence") or {}).get("id") or [])}
+    return ids or None
+
+
+def _sequences_text(mine: set, other: set, other_label: str) -> str:
+    only = sorted(mine - other)
+    return (f"{len(mine)} sequences, {len(only)} not in {other_label}"
+            + (f" ({', '.join(only[:3])}{', ...' if len(only) > 3 else ''})" if only else ""))
 
 
 def _fmt(v) -> str:
