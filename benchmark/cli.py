@@ -11,6 +11,8 @@ import logging
 import sys
 import traceback
 
+from benchmark.commands.common import HelpFormatter
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``python -m benchmark``: one sub-command per module of :mod:`benchmark.commands`
@@ -22,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m benchmark",
         description="Reference benchmark harness for human motion priors.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging (and tracebacks on errors)")
     parser.add_argument("--debug", action="store_true", help="print the traceback of an error")

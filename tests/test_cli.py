@@ -94,3 +94,35 @@ def test_export_onnx_no_prior_is_a_clear_error(capsys, tmp_path):
     assert err.startswith("error: ") and "no-prior" in err and "no decoder" in err
     assert len(err.splitlines()) == 1 and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []
+
+
+def _subparsers(parser):
+    """Every parser under ``parser`` (sub-commands and their own sub-commands), by its prog."""
+    import argparse
+
+    found = {parser.prog: parser}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                found.update(_subparsers(sub))
+    return found
+
+
+def test_help_states_each_default_once():
+    """An option whose help says its default (``default: full on CUDA, quick on CPU``) gets no
+    second, argparse-made one (``(default: None)``) beside it."""
+    from benchmark.cli import build_parser
+
+    parsers = _subparsers(build_parser())
+    assert "python -m benchmark run" in parsers and "python -m benchmark data make-scans" in parsers
+    twice = []
+    for prog, parser in parsers.items():
+        formatter = parser._get_formatter()
+        for action in parser._actions:
+            if action.help:
+                text = formatter._get_help_string(action)
+                if "default" in action.help.lower() and text != action.help:  # argparse added a second one
+                    twice.append(f"{prog} {'/'.join(action.option_strings) or action.dest}: {text}")
+    assert not twice, "\n".join(twice)
+    run_help = parsers["python -m benchmark run"].format_help()
+    assert "(default: runs/latest)" in run_help  # the defaults argparse knows are still shown

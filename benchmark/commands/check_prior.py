@@ -3,7 +3,7 @@ through a tiny table."""
 
 from __future__ import annotations
 
-import argparse
+from benchmark.commands.common import HelpFormatter
 
 from benchmark.run.registry import make_adapter, registry
 
@@ -27,7 +27,7 @@ def _cmd_check_prior(args) -> int:
 def add_command(sub) -> None:
     from benchmark.core import argtypes as at
 
-    fmt = argparse.ArgumentDefaultsHelpFormatter
+    fmt = HelpFormatter
     p = sub.add_parser("check-prior", help="conformance kit: run an adapter through a tiny table", formatter_class=fmt)
     p.add_argument("name")
     p.add_argument("--size", choices=["embedded", "paper"], default="embedded")

@@ -1,6 +1,20 @@
-"""What several commands share: the ``--device`` check, ``NAME=VALUE`` options."""
+"""What several commands share: the help formatter, the ``--device`` check, ``NAME=VALUE`` options."""
 
 from __future__ import annotations
+
+import argparse
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """``--help`` with each option's default, added only where its help text does not state the
+    default itself (``default: full on CUDA, quick on CPU``), so that no option shows two defaults
+    (``... (default: the CPU cores) (default: None)``)."""
+
+    def _get_help_string(self, action):
+        help_text = action.help or ""
+        if "default" in help_text.lower():
+            return help_text
+        return super()._get_help_string(action)
 
 
 def resolve_device(name: str | None) -> str:

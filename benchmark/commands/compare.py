@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import argparse
+from benchmark.commands.common import HelpFormatter
 
 
 def _cmd_compare(args) -> int:
@@ -12,7 +12,7 @@ def _cmd_compare(args) -> int:
 
 
 def add_command(sub) -> None:
-    fmt = argparse.ArgumentDefaultsHelpFormatter
+    fmt = HelpFormatter
     p = sub.add_parser("compare", help="per-cell differences between two table JSONs", formatter_class=fmt)
     p.add_argument("a")
     p.add_argument("b")

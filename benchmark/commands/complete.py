@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-import argparse
+from benchmark.commands.common import HelpFormatter
 
 
 def _cmd_complete(args) -> int:
@@ -16,7 +16,7 @@ def add_command(sub) -> None:
     from benchmark.core import argtypes as at
 
     p = sub.add_parser("complete", help="fit a prior to one capture (scan folder, .npz motion or BVH) and write the "
-                       "completed motion", formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       "completed motion", formatter_class=HelpFormatter)
     p.add_argument("input", help="scan folder, harness/AMASS .npz, or .bvh")
     p.add_argument("--prior", required=True, help="prior name (python -m benchmark list priors)")
     p.add_argument("--out", required=True, help="output folder")

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-import argparse
+from benchmark.commands.common import HelpFormatter
 
 
 def _cmd_data_convert(args) -> int:
@@ -55,7 +55,7 @@ def add_command(sub) -> None:
     p = sub.add_parser("data", help="motion data: convert files, build the synthetic splits")
     dsub = p.add_subparsers(dest="data_command", metavar="DATA_COMMAND")
     c = dsub.add_parser("convert", help="AMASS .npz or BVH -> the harness's motion .npz",
-                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                        formatter_class=HelpFormatter)
     c.add_argument("input")
     c.add_argument("--out", required=True, help="output .npz (never overwritten without --force)")
     c.add_argument("--fps", type=at.fps, default=None, help="resample to this rate (default: keep the source rate)")
@@ -64,13 +64,13 @@ def add_command(sub) -> None:
                    "smplx[=PATH[:gender]]): SMPL betas cut or zero-padded to the model's, another body's shape dropped")
     c.set_defaults(func=_cmd_data_convert)
     b = dsub.add_parser("build", help="generate (or check the cache of) a synthetic split",
-                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                        formatter_class=HelpFormatter)
     b.add_argument("split", choices=["test", "train", "val"])
     b.add_argument("--seed", type=at.seed, default=None, help="override the split's seed")
     b.add_argument("--rebuild", action="store_true")
     b.set_defaults(func=_cmd_data_build)
     m = dsub.add_parser("make-scans", help="write captured-like scan folders (PLY + timestamps) from the synthetic test split",
-                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                        formatter_class=HelpFormatter)
     m.add_argument("--out", required=True, help="output folder, one sub-folder per sequence")
     m.add_argument("--sequences", type=at.positive_int, default=4, help="how many test sequences (the profiles' selection)")
     m.add_argument("--ids", nargs="+", default=None, help="explicit test sequence ids instead of --sequences")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import argparse
+from benchmark.commands.common import HelpFormatter
 
 from benchmark.run.registry import make_adapter
 
@@ -79,7 +79,7 @@ def _cmd_describe(args) -> int:
 def add_command(sub) -> None:
     from benchmark.core import argtypes as at
 
-    fmt = argparse.ArgumentDefaultsHelpFormatter
+    fmt = HelpFormatter
     p = sub.add_parser("describe", help="architecture summary and parameter counts of a prior (--size paper without --weights: "
                        "the paper-size network with random weights)", formatter_class=fmt)
     p.add_argument("name", nargs="?", default=None, help="a prior (python -m benchmark list priors)")

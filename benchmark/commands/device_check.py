@@ -3,9 +3,10 @@ failure collected (:mod:`benchmark.tools.device_check`)."""
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+
+from benchmark.commands.common import HelpFormatter
 
 
 def add_command(sub) -> None:
@@ -14,7 +15,7 @@ def add_command(sub) -> None:
 
     p = sub.add_parser("device-check", help="run every table's smoke profile on a device (default cuda), one prior at "
                                             "a time, and report every failure with where it happened; exit 1 on any",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=HelpFormatter)
     p.add_argument("--device", default="cuda", help="cpu | cuda | cuda:N")
     p.add_argument("--table", action="append", default=None, choices=TABLE_ORDER,
                    help="a table to check (repeatable); default: all, table1 first")

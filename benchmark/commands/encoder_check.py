@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-import argparse
+from benchmark.commands.common import HelpFormatter
 
 
 def add_command(sub) -> None:
@@ -12,7 +12,7 @@ def add_command(sub) -> None:
     p = sub.add_parser("encoder-check", help="encode -> decode error (MPJPE mm) of each prior's encoder on the quick "
                                              "test windows, clean and with per-frame joint noise (the completion "
                                              "start's condition)",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=HelpFormatter)
     p.add_argument("--prior", action="append", default=None,
                    help="prior name (repeatable); default: table1's default priors")
     p.add_argument("--noise-deg", type=at.non_negative_float, action="append", default=None,

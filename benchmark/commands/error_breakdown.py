@@ -3,13 +3,13 @@
 
 from __future__ import annotations
 
-import argparse
+from benchmark.commands.common import HelpFormatter
 
 
 def add_command(sub) -> None:
     p = sub.add_parser("error-breakdown", help="split each completion cell's MPJPE: observed vs in-between frames, "
                                               "pelvis position vs pose, torso / legs / arms (mm)",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=HelpFormatter)
     p.add_argument("run_dir", help="the --out folder of a table1 or sls run (its units/ are read)")
     p.add_argument("--prior", action="append", default=None, help="only this prior (repeatable)")
     p.add_argument("--body", default="anny", help="the body model the run used (anny | smpl | smplh | smplx[=PATH[:gender]])")

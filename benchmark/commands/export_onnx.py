@@ -3,9 +3,10 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+
+from benchmark.commands.common import HelpFormatter
 
 from benchmark.run.registry import make_adapter
 
@@ -60,7 +61,7 @@ def _cmd_export_onnx(args) -> int:
 def add_command(sub) -> None:
     from benchmark.core import argtypes as at
 
-    fmt = argparse.ArgumentDefaultsHelpFormatter
+    fmt = HelpFormatter
     p = sub.add_parser("export-onnx", help="export a prior's decoder to ONNX (dynamic batch) and check it with onnxruntime",
                        formatter_class=fmt)
     p.add_argument("name")

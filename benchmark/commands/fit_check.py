@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-import argparse
+from benchmark.commands.common import HelpFormatter
 
 
 def add_command(sub) -> None:
@@ -11,7 +11,7 @@ def add_command(sub) -> None:
 
     p = sub.add_parser("fit-check", help="fit a prior (default no-prior) on one table1 cell and check the fit against "
                                          "its targets (MPJPE, Chamfer, root error, backwards, convergence); exit 1 on a miss",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=HelpFormatter)
     p.add_argument("--prior", default="no-prior")
     p.add_argument("--points", type=at.points, default=10000, help="a table1 cell's points per frame")
     p.add_argument("--fps", type=at.fps, default=10, help="a table1 cell's observed frames per second")

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
+
+from benchmark.commands.common import HelpFormatter
 
 
 def _read_table(path: str, what: str) -> dict:
@@ -49,7 +50,7 @@ def _cmd_merge_rows(args) -> int:
 
 
 def add_command(sub) -> None:
-    fmt = argparse.ArgumentDefaultsHelpFormatter
+    fmt = HelpFormatter
     p = sub.add_parser("merge-rows", formatter_class=fmt,
                        help="a table with some priors' rows replaced by (or added from) a run of those priors under the same rules",
                        description="BASE with every row of NEW in its prior's place (a new prior is appended); "

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-import argparse
+from benchmark.commands.common import HelpFormatter
 
 
 def _cmd_perf(args) -> int:
@@ -17,7 +17,7 @@ def _cmd_perf(args) -> int:
 def add_command(sub) -> None:
     p = sub.add_parser("perf", help="speed of the hot paths (Chamfer, point-to-surface, evaluation, skinning, fit "
                                     "steps) against the baselines a user would pick, measured side by side",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=HelpFormatter)
     p.add_argument("--device", default="cpu", help="cpu, or cuda (adds the tiled-vs-torch.cdist comparison)")
     p.add_argument("--full", action="store_true", help="more frames per measurement (slower)")
     p.add_argument("--out", default="perf", help="folder for perf.md and perf.json")

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import argparse
 import os
 from pathlib import Path
+
+from benchmark.commands.common import HelpFormatter
 
 # what the report writes into its folder: index.html and img/ (img/.benchmark-report marks it)
 REPORT_ENTRIES = ("index.html", "img")
@@ -51,7 +52,7 @@ def add_command(sub) -> None:
     from benchmark.report.build import ANIMATION_FPS, DEFAULT_SEQUENCES
 
     p = sub.add_parser("report", help="HTML report of a finished run: tables, plots, animated fits",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=HelpFormatter)
     p.add_argument("run_dir", metavar="RUN_DIR", help="a run folder (the --out of 'run': <table>.json + units/)")
     p.add_argument("--out", default=None, help="report folder (default: RUN_DIR/report)")
     p.add_argument("--sequences", type=at.non_negative_int, default=DEFAULT_SEQUENCES,

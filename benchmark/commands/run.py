@@ -3,11 +3,10 @@ everything a user can get wrong before anything heavy loads."""
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-from benchmark.commands.common import parse_pairs, resolve_device
+from benchmark.commands.common import HelpFormatter, parse_pairs, resolve_device
 from benchmark.run.catalog import default_priors
 
 
@@ -113,7 +112,7 @@ def _run_locked(args, spec, device, profile_name, profile, priors, weights, out)
 def add_command(sub) -> None:
     from benchmark.core import argtypes as at
 
-    fmt = argparse.ArgumentDefaultsHelpFormatter
+    fmt = HelpFormatter
     p = sub.add_parser("run", help="run a table (e.g. table1) for some priors", formatter_class=fmt)
     p.add_argument("table")
     p.add_argument("--prior", action="append", help="prior name (repeatable); default: the table spec's default_priors (python -m benchmark list)")

@@ -3,8 +3,9 @@
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
+
+from benchmark.commands.common import HelpFormatter
 
 
 def _cmd_train(args) -> int:
@@ -43,7 +44,7 @@ def _cmd_train(args) -> int:
 def add_command(sub) -> None:
     from benchmark.core import argtypes as at
 
-    fmt = argparse.ArgumentDefaultsHelpFormatter
+    fmt = HelpFormatter
     p = sub.add_parser("train", help="train a prior's embedded weights on the synthetic training split", formatter_class=fmt)
     p.add_argument("name")
     p.add_argument("--steps", type=at.positive_int, default=None, help="training steps (default: the recipe's)")

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-import argparse
+from benchmark.commands.common import HelpFormatter
 
 
 def _cmd_train_report(args) -> int:
@@ -17,7 +17,7 @@ def add_command(sub) -> None:
     from priors.training import WEIGHTS_DIR
 
     p = sub.add_parser("train-report", help="training and validation curves of the embedded priors (from their records)",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=HelpFormatter)
     p.add_argument("--weights-dir", default=str(WEIGHTS_DIR), help="folder of the weights and their NAME.json records")
     p.add_argument("--out", default="runs/train-report")
     p.set_defaults(func=_cmd_train_report)
