@@ -1,0 +1,55 @@
+"""The life of a run folder when a user is interrupted or makes mistakes: stale locks whose pid was
+reused, and the other cases of docs/running.md that earlier tests do not cover."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from benchmark.core.outdir import OutDirError, OutDirLock
+
+
+def _write_lock(folder, pid, started):
+    (folder / ".lock").write_text(json.dumps({"pid": pid, "host": socket.gethostname(), "started": started,
+                                              "command": "python -m benchmark run table1"}))
+
+
+def test_a_lock_naming_this_process_pid_is_a_killed_run_before_a_restart(tmp_path, capsys):
+    # a container restarted after its run was killed gives the new run the same pid: its lock was
+    # refused as "this process already holds" it, for ever
+    _write_lock(tmp_path, os.getpid(), time.time() - 3600)
+    with OutDirLock(tmp_path) as lock:
+        assert lock.took_over["pid"] == os.getpid()
+        assert json.loads((tmp_path / ".lock").read_text())["started"] > time.time() - 60
+    assert not (tmp_path / ".lock").exists()
+    assert "its pid is now this process's" in capsys.readouterr().out
+
+
+def test_the_same_process_taking_its_own_lock_twice_is_still_refused(tmp_path):
+    with OutDirLock(tmp_path):
+        with pytest.raises(OutDirError, match="this process already holds"):
+            OutDirLock(tmp_path).acquire()
+    with OutDirLock(tmp_path):  # released: free again
+        pass
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="process start times come from /proc (Linux)")
+def test_a_lock_whose_pid_now_belongs_to_a_later_process_is_taken_over(tmp_path, capsys):
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        _write_lock(tmp_path, other.pid, time.time() - 3600)  # written an hour before that process started
+        with OutDirLock(tmp_path) as lock:
+            assert lock.took_over["pid"] == other.pid
+        assert "another process's, started later" in capsys.readouterr().out
+        _write_lock(tmp_path, other.pid, time.time())  # written after it started: it may be its owner
+        with pytest.raises(OutDirError, match="another run is writing there"):
+            OutDirLock(tmp_path).acquire()
+    finally:
+        other.kill()
+        other.wait()
