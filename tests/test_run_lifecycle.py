@@ -53,3 +53,30 @@ def test_a_lock_whose_pid_now_belongs_to_a_later_process_is_taken_over(tmp_path,
     finally:
         other.kill()
         other.wait()
+
+
+@pytest.mark.parametrize("blocker", ["units", "units/stale"])
+def test_a_units_folder_that_is_a_file_fails_before_any_unit_is_computed(tmp_path, blocker):
+    # before: every unit was computed, then failed to be stored (FileExistsError), exit 1
+    from benchmark.run import runner
+    from fake_units import FakeExecutor, plan
+
+    (tmp_path / "units").mkdir()
+    (tmp_path / blocker).rmdir() if (tmp_path / blocker).is_dir() else None
+    (tmp_path / blocker).write_text("my notes\n")
+    ex = FakeExecutor()
+    with pytest.raises(OutDirError, match=f"{tmp_path / blocker} is a file, not the folder .* move it away"):
+        runner.run_units(plan(), ex, tmp_path, progress=False)
+    assert ex.calls == [] and (tmp_path / blocker).read_text() == "my notes\n"
+
+
+def test_the_run_command_checks_the_units_folder_before_loading_anything(tmp_path, monkeypatch, capsys):
+    from benchmark.cli import main
+    from benchmark.run import table_run
+
+    monkeypatch.setattr(table_run, "run_table", lambda *a, **k: pytest.fail("run_table reached"))
+    (tmp_path / "units").write_text("")
+    assert main(["run", "table1", "--prior", "no-prior", "--profile", "smoke", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"error: --out {tmp_path}: {tmp_path / 'units'} is a file")
+    assert not (tmp_path / ".lock").exists()

@@ -93,6 +93,28 @@ def check_out_dir(out: str | os.PathLike, min_free_bytes: int = MIN_FREE_BYTES, 
     return path
 
 
+def check_units_folder(out: str | os.PathLike, what: str = "--out") -> Path:
+    """Before any work: a table run stores each unit in ``<out>/units/`` and moves stale ones to
+    ``<out>/units/stale/``; either one that exists must be a folder this process can write into,
+    else every unit would be computed and then fail to be stored. Creates ``units/``; raises
+    :class:`OutDirError` naming the path and the fix."""
+    units = Path(out) / "units"
+    for folder in (units, units / "stale"):
+        if folder.exists() and not folder.is_dir():
+            raise OutDirError(f"{what} {out}: {folder} is a file, not the folder the run keeps its work units in; "
+                              "move it away or choose another --out")
+    try:
+        units.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutDirError(f"{what} {out}: cannot create {units} ({exc.strerror or exc}); fix the permissions of "
+                          f"{out} or choose another --out") from None
+    for folder in (units, units / "stale"):
+        if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
+            raise OutDirError(f"{what} {out}: {folder} is not writable; the run stores (and moves aside) its work "
+                              f"units there: fix its permissions (chmod u+w {folder}) or choose another --out")
+    return units
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)

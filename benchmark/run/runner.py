@@ -47,6 +47,7 @@ from benchmark.run.backends import BACKENDS, Backend
 from benchmark.run.cap_carry import carry_problem, carry_unit
 from benchmark.data.unit_arrays import ARRAYS_KEY, arrays_path, write_arrays
 from benchmark.core.json_io import atomic_write_json
+from benchmark.core.outdir import check_units_folder
 from benchmark.core.work_units import WorkUnit, checksum_problem, unit_path, validate_unit_result, with_checksum
 
 __all__ = ["RESUME_POLICIES", "RunReport", "progress_enabled", "run_units"]
@@ -230,6 +231,8 @@ def run_units(
     ids = [u.unit_id for u in units]
     if len(set(ids)) != len(ids):
         raise ValueError(f"run_units: unit ids repeat: {sorted({i for i in ids if ids.count(i) > 1})[:5]}")
+
+    check_units_folder(out_dir)  # a units/ that is a file would fail every unit after computing it
 
     t0 = time.perf_counter()
     report = RunReport()
