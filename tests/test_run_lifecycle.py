@@ -80,3 +80,29 @@ def test_the_run_command_checks_the_units_folder_before_loading_anything(tmp_pat
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith(f"error: --out {tmp_path}: {tmp_path / 'units'} is a file")
     assert not (tmp_path / ".lock").exists()
+
+
+def test_half_written_files_of_a_killed_run_are_removed_by_the_next_run(tmp_path, monkeypatch, capsys):
+    # a run killed during an atomic write (SIGKILL, OOM) left ".<file>.<random>.tmp" behind for ever
+    import benchmark.body
+    from benchmark.cli import main
+    from benchmark.run import table_run
+
+    seen = {}
+
+    def fake_run_table(*args, out_dir, **kwargs):
+        seen["left"] = sorted(p.name for p in out_dir.rglob("*") if p.is_file() and p.name != ".lock")
+        return {"markdown": "", "files": {}, "failures": {}}
+
+    monkeypatch.setattr(table_run, "run_table", fake_run_table)
+    monkeypatch.setattr(benchmark.body, "get_body", lambda *a, **k: None)
+    units = tmp_path / "units"
+    units.mkdir()
+    partial = [units / ".table1__no-prior__points=100_fps=5__b000.json.k2j4h5x_.tmp",
+               units / ".table1__no-prior__points=100_fps=5__b000.npz.a1b2c3d4.tmp", tmp_path / ".table1.md.zz99yy88.tmp"]
+    kept = [units / "notes.tmp", tmp_path / ".my.json.tmp", units / "table1__no-prior__points=100_fps=5__b000.json"]
+    for p in partial + kept:
+        p.write_text("{\"half")
+    assert main(["run", "table1", "--prior", "no-prior", "--profile", "smoke", "--jobs", "1", "--out", str(tmp_path)]) == 0
+    assert seen["left"] == sorted(p.name for p in kept)
+    assert all(p.exists() for p in kept) and not any(p.exists() for p in partial)

@@ -64,7 +64,7 @@ def _backend_options(args, device: str) -> dict:
 
 def _cmd_run(args) -> int:
     from benchmark.run.catalog import get_profile, load_table_spec
-    from benchmark.core.outdir import OutDirLock, check_out_dir, check_units_folder
+    from benchmark.core.outdir import OutDirLock, check_out_dir, check_units_folder, remove_partial_files
     from benchmark.run.registry import check_weights_option, get_prior_class
 
     # everything a user can get wrong is checked here, before the body, data or any prior loads
@@ -88,6 +88,7 @@ def _cmd_run(args) -> int:
     parse_body_spec(args.body)
     _check_data_arg(args.data)
     with OutDirLock(out, command="python -m benchmark " + " ".join(sys.argv[1:])):
+        remove_partial_files(out)  # a killed run's half-written files: only ours, and no other run writes here
         return _run_locked(args, spec, device, profile_name, profile, priors, weights, out)
 
 

@@ -25,6 +25,7 @@ import errno
 import json
 import logging
 import os
+import re
 import shutil
 import socket
 import tempfile
@@ -113,6 +114,36 @@ def check_units_folder(out: str | os.PathLike, what: str = "--out") -> Path:
             raise OutDirError(f"{what} {out}: {folder} is not writable; the run stores (and moves aside) its work "
                               f"units there: fix its permissions (chmod u+w {folder}) or choose another --out")
     return units
+
+
+# the temporary files of an atomic write (benchmark.core.json_io, benchmark.data.unit_arrays):
+# ".<name>.<mkstemp's 8 random characters>.tmp", renamed to <name> once complete
+_TEMP_FILE = re.compile(r"\.[^/]+\.(?:json|npz|md|csv|tex)\.[A-Za-z0-9_]{8}\.tmp")
+
+
+def remove_partial_files(out: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files of atomic writes that a run killed outright (SIGKILL, a lost node,
+    the out-of-memory killer) left half-written in ``out`` and ``out/units``: each is a file the run
+    had not finished, never a result. Call it only while holding the folder's :class:`OutDirLock`
+    (no other run can be writing there). Returns the files removed."""
+    removed = []
+    for folder in (Path(out), Path(out) / "units"):
+        try:
+            entries = list(os.scandir(folder))
+        except OSError:
+            continue
+        for entry in entries:
+            if not _TEMP_FILE.fullmatch(entry.name) or not entry.is_file(follow_symlinks=False):
+                continue
+            try:
+                os.unlink(entry.path)
+            except OSError:
+                continue
+            removed.append(Path(entry.path))
+    if removed:
+        log.info("removed %d half-written file(s) left by a run that was killed (%s)", len(removed),
+                 ", ".join(p.name for p in removed[:3]) + (" ..." if len(removed) > 3 else ""))
+    return removed
 
 
 def _pid_alive(pid: int) -> bool:
