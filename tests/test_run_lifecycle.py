@@ -106,3 +106,41 @@ def test_half_written_files_of_a_killed_run_are_removed_by_the_next_run(tmp_path
     assert main(["run", "table1", "--prior", "no-prior", "--profile", "smoke", "--jobs", "1", "--out", str(tmp_path)]) == 0
     assert seen["left"] == sorted(p.name for p in kept)
     assert all(p.exists() for p in kept) and not any(p.exists() for p in partial)
+
+
+def test_a_second_ctrl_c_while_the_first_unwinds_is_ignored():
+    import signal
+
+    from benchmark.core import interrupts
+
+    before = signal.getsignal(signal.SIGINT)
+    if before is not signal.default_int_handler:
+        pytest.skip("SIGINT is not Python's default handler here")
+    cleaned = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts.sigint_once():
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(1)
+            finally:  # the cleanup of the first Ctrl-C: a second one must not cut it short
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.2)
+                cleaned.append(True)
+    assert cleaned == [True] and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_ctrl_c_during_the_exit_after_the_stop_line_prints_no_traceback(tmp_path):
+    # python -m benchmark stopped by Ctrl-C: a further Ctrl-C during the interpreter's exit (torch's
+    # atexit hooks) printed "Exception ignored in atexit callback ... KeyboardInterrupt"
+    code = ("import atexit, os, signal, time, runpy\n"
+            "import benchmark.cli as cli\n"
+            "def again():\n"
+            "    os.kill(os.getpid(), signal.SIGINT); time.sleep(0.3); print('exit finished', flush=True)\n"
+            "atexit.register(again)\n"
+            "cli.main = lambda: 130\n"
+            "runpy.run_module('benchmark', run_name='__main__')\n")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "PYTHONPATH": root})
+    assert proc.returncode == 130, proc.stderr
+    assert "exit finished" in proc.stdout and "Traceback" not in proc.stderr
