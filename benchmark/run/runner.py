@@ -138,6 +138,20 @@ def move_aside(path: Path, unit_id: str, old_hash: str | None, arrays: bool = Tr
 
 
 SPEC_DIFFERS = "spec hash differs"
+OTHER_DEVICE = "made on another device"
+
+
+def _device_problem(stored, unit: WorkUnit) -> str | None:
+    """Why a stored unit cannot stand in this run's table for its device: the device is not in the
+    spec hash (a run on a CPU and one on a GPU plan the same units), but a fit on a GPU is not the
+    CPU's to the bit, so a table made on one device reports no unit made on another (cpu vs cuda;
+    cuda:0 vs cuda:1 is the same kind). None for an n/a unit (no fit) or a record without a device."""
+    made = stored.get("device") if isinstance(stored, dict) else None
+    if not isinstance(made, str) or made == "none" or stored.get("na_reason") is not None:
+        return None
+    if made.split(":", 1)[0] != str(unit.device).split(":", 1)[0]:
+        return f"{OTHER_DEVICE} (made on {made}, this run is on {unit.device})"
+    return None
 MOVED = "moved"  # _carry's answer when it moved the stored file aside and then failed
 
 
@@ -160,6 +174,9 @@ def _read_stored(path: Path, unit: WorkUnit) -> tuple[dict | None, str | None, s
     problem = checksum_problem(stored)
     if problem:
         return None, old_hash, f"checksum mismatch ({problem})", stored
+    other = _device_problem(stored, unit)
+    if other:
+        return None, old_hash, other, stored
     return stored, old_hash, None, stored
 
 
@@ -169,7 +186,7 @@ def _carry(path: Path, unit: WorkUnit, raw: dict | None, old_hash: str | None, c
     not (:mod:`benchmark.run.cap_carry`)."""
     if carry is None or not isinstance(raw, dict):
         return None, None
-    problem = carry_problem(raw, unit, carry(unit))
+    problem = carry_problem(raw, unit, carry(unit)) or _device_problem(raw, unit)
     if problem is not None:
         return None, problem
     target = move_aside(path, unit.unit_id, old_hash, arrays=False)  # carry_unit copies the .npz there
@@ -264,7 +281,7 @@ def run_units(
         if not_carried:
             reason = f"{reason}; not carried to the new cap: {not_carried}"
         report.moved_why[unit.unit_id] = reason
-        log.log(logging.WARNING if why and why.startswith(("checksum", "invalid", "unreadable")) else logging.INFO,
+        log.log(logging.WARNING if why and why.startswith(("checksum", "invalid", "unreadable", OTHER_DEVICE)) else logging.INFO,
                 "%s: stored result not reused (%s); moved to %s, rerunning", unit.unit_id, reason, target)
         todo.append(unit)
     if announce:
