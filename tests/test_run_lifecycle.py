@@ -144,3 +144,57 @@ def test_ctrl_c_during_the_exit_after_the_stop_line_prints_no_traceback(tmp_path
                           env={**os.environ, "PYTHONPATH": root})
     assert proc.returncode == 130, proc.stderr
     assert "exit finished" in proc.stdout and "Traceback" not in proc.stderr
+
+
+def test_a_unit_made_on_another_device_is_not_reused(tmp_path, capsys):
+    # the device is not in the spec hash: units fitted on a GPU were reused in a CPU run's table
+    # (and the other way round), whose header says one device
+    from benchmark.run import runner
+    from fake_units import FakeExecutor, plan
+
+    class OnGPU(FakeExecutor):
+        def __call__(self, unit):
+            return {**super().__call__(unit), "device": "cuda:0"}
+
+    units = plan()
+    assert runner.run_units(units, OnGPU(), tmp_path, progress=False).ok
+    ex = FakeExecutor()  # the same units planned on a CPU
+    report = runner.run_units(plan(), ex, tmp_path, progress=False)
+    assert len(ex.calls) == len(units) and report.reused == [] and len(report.moved) == len(units)
+    assert report.resume_counts()["moved_aside_reasons"] == {"made on another device": len(units)}
+    assert "made on cuda:0, this run is on cpu" in next(iter(report.moved_why.values()))
+    assert all(json.loads(p.read_text())["device"] == "cuda:0" for p in report.moved)  # kept, in units/stale/
+    again = FakeExecutor()
+    assert len(runner.run_units(plan(), again, tmp_path, progress=False).reused) == len(units) and again.calls == []
+
+
+def test_a_full_disk_part_way_through_the_tables_leaves_the_earlier_set_whole(tmp_path, monkeypatch):
+    # the four files were replaced one by one: ENOSPC (or Ctrl-C) on the Markdown left this run's
+    # JSON beside the Markdown, CSV and LaTeX of an earlier run under other settings
+    import errno
+
+    from benchmark.run.table_derive import derive_table
+    from benchmark.run.writers import FORMATS, write_table
+    from fake_units import FakeExecutor, meta, plan, table_spec
+
+    def table(seed):
+        units = plan(seed=seed)
+        return derive_table(table_spec(), [FakeExecutor()(u) for u in units], {**meta(units), "seed": seed})
+
+    write_table(table(0), tmp_path)
+    before = {f: (tmp_path / f"table1.{f}").read_bytes() for f in FORMATS}
+    real_fsync = os.fsync
+
+    def full(fd):
+        if ".table1.md." in os.readlink(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(OSError, match="table1.md"):
+        write_table(table(1), tmp_path)
+    assert {f: (tmp_path / f"table1.{f}").read_bytes() for f in FORMATS} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"table1.{f}" for f in FORMATS)  # no temp file
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    write_table(table(1), tmp_path)
+    assert json.loads((tmp_path / "table1.json").read_text())["seed"] == 1
