@@ -198,3 +198,21 @@ def test_a_full_disk_part_way_through_the_tables_leaves_the_earlier_set_whole(tm
     monkeypatch.setattr(os, "fsync", real_fsync)
     write_table(table(1), tmp_path)
     assert json.loads((tmp_path / "table1.json").read_text())["seed"] == 1
+
+
+def test_units_made_with_other_torch_threads_are_another_computation():
+    # Ray's --cpus-per-unit 2 fits each unit with 2 torch threads: table1 smoke, no-prior, 10000 pts /
+    # 5 fps gave an MPJPE sum of 2.653 m against 2.935 m with 1 thread, and a resume across the two
+    # mixed them in one table (the thread count was in no spec)
+    from benchmark.run.backends import ProcessBackend, RayBackend, backend_threads, serial_backend
+    from fake_units import plan, plan_units, profile, table_spec
+
+    one = plan()
+    assert "torch_threads" not in one[0].spec  # one thread: the spec and the stored hashes as before
+    two = plan_units(table_spec(), profile(batch_sequences=2), [u.prior for u in one[:1]], ["s0", "s1", "s2"], 0, "cpu",
+                     {one[0].prior: {}}, threads=2)
+    same = [u for u in one if u.prior == one[0].prior]
+    assert [u.unit_id for u in two] == [u.unit_id for u in same]
+    assert all(a.spec_hash != b.spec_hash and b.spec["torch_threads"] == 2 for a, b in zip(same, two))
+    assert backend_threads(serial_backend) == 1 and backend_threads(ProcessBackend(2)) == 1
+    assert backend_threads(RayBackend(cpus_per_unit=2)) == 2 and backend_threads(RayBackend(cpus_per_unit=0.5)) == 1
