@@ -216,3 +216,45 @@ def test_units_made_with_other_torch_threads_are_another_computation():
     assert all(a.spec_hash != b.spec_hash and b.spec["torch_threads"] == 2 for a, b in zip(same, two))
     assert backend_threads(serial_backend) == 1 and backend_threads(ProcessBackend(2)) == 1
     assert backend_threads(RayBackend(cpus_per_unit=2)) == 2 and backend_threads(RayBackend(cpus_per_unit=0.5)) == 1
+
+
+def test_a_mistaken_rerun_stopped_at_once_does_not_cost_the_finished_units(tmp_path, capsys):
+    # `run --seed 1` into a folder of seed-0 results, Ctrl-C at once: every seed-0 unit had gone to
+    # units/stale/ and the right command (--seed 0) computed them all again
+    from benchmark.run import runner
+    from fake_units import FakeExecutor, plan
+
+    class CtrlC(FakeExecutor):
+        def __call__(self, unit):
+            raise KeyboardInterrupt
+
+    first = runner.run_units(plan(seed=0), FakeExecutor(), tmp_path, progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_units(plan(seed=1), CtrlC(), tmp_path, progress=False)
+    assert not list((tmp_path / "units").glob("*.json"))  # all moved aside
+    capsys.readouterr()
+    ex = FakeExecutor()
+    again = runner.run_units(plan(seed=0), ex, tmp_path, progress=False)
+    assert ex.calls == [] and again.results == first.results and len(again.restored) == len(first.results)
+    assert f"{len(first.results)} reused (of them {len(first.results)} taken back from units/stale/)" in capsys.readouterr().out
+    seed0 = {u.spec_hash for u in plan(seed=0)}
+    assert not [p for p in (tmp_path / "units" / "stale").glob("*.json") if json.loads(p.read_text())["spec_hash"] in seed0]
+
+
+def test_alternating_settings_in_one_folder_swap_their_units_instead_of_recomputing(tmp_path):
+    from benchmark.run import runner
+    from fake_units import FakeExecutor, plan
+
+    runner.run_units(plan(seed=0), FakeExecutor(), tmp_path, progress=False)
+    runner.run_units(plan(seed=1), FakeExecutor(), tmp_path, progress=False)
+    for seed in (0, 1, 0):
+        ex = FakeExecutor()
+        report = runner.run_units(plan(seed=seed), ex, tmp_path, progress=False)
+        assert ex.calls == [] and len(report.restored) == len(report.results) == len(plan())
+    edited = next((tmp_path / "units" / "stale").glob("*.json"))  # a stale copy edited by hand is not taken back
+    record = json.loads(edited.read_text())
+    record["per_sequence"][0]["frames"] += 1
+    edited.write_text(json.dumps(record))
+    ex = FakeExecutor()
+    report = runner.run_units(plan(seed=1), ex, tmp_path, progress=False)
+    assert len(ex.calls) == 1 and len(report.restored) == len(plan()) - 1
