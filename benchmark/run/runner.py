@@ -174,7 +174,7 @@ def _read_stored(path: Path, unit: WorkUnit) -> tuple[dict | None, str | None, s
     if not isinstance(old_hash, str):
         old_hash = None
     if old_hash != unit.spec_hash:
-        return None, old_hash, f"{SPEC_DIFFERS} (its inputs, rules, sizes, weights or seed changed)", stored
+        return None, old_hash, f"{SPEC_DIFFERS} (its inputs, rules, sizes, weights, seed or torch threads changed)", stored
     try:
         validate_unit_result(stored, unit, source=str(path))
     except ValueError as exc:
