@@ -1,3 +1,3 @@
-from benchmark.cli import main
+from benchmark.cli import console_main
 
-raise SystemExit(main())
+console_main()

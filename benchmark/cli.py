@@ -73,7 +73,7 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else 2
-    from benchmark.core.interrupts import exit_code, sigterm_raises, stop_message
+    from benchmark.core.interrupts import exit_code, sigint_once, sigterm_raises, stop_message
 
     empty = [opt for opt in ("out", "out_dir") if isinstance(getattr(args, opt, None), str) and not getattr(args, opt).strip()]
     if empty:  # `--out "$DIR"` with DIR unset: never the current folder
@@ -82,7 +82,9 @@ def main(argv=None) -> int:
         return 2
 
     try:
-        with sigterm_raises():  # SIGTERM unwinds like Ctrl-C: workers stopped, temp files removed, --out unlocked
+        # SIGTERM unwinds like Ctrl-C: workers stopped, temp files removed, --out unlocked; a second
+        # Ctrl-C or SIGTERM while it unwinds is ignored
+        with sigterm_raises(), sigint_once():
             return int(args.func(args) or 0)
     except KeyboardInterrupt as exc:  # Ctrl-C (exit 130), or SIGTERM (Terminated, exit 143)
         print(stop_message(exc), file=sys.stderr)
@@ -95,3 +97,18 @@ def main(argv=None) -> int:
             text += " (run with --debug for the traceback)"
         print(f"error: {text}", file=sys.stderr)
         return 2
+
+
+def console_main() -> None:
+    """``python -m benchmark`` and the ``motion-benchmark`` script: :func:`main`, then exit with its
+    code. Once a run has stopped on Ctrl-C or SIGTERM and printed its line, more of them are ignored,
+    so that the interpreter's exit (its atexit hooks) is not cut short with a traceback."""
+    import signal
+
+    from benchmark.core.interrupts import EXIT_SIGINT, EXIT_SIGTERM
+
+    code = main()
+    if code in (EXIT_SIGINT, EXIT_SIGTERM):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise SystemExit(code)

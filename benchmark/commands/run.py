@@ -63,7 +63,7 @@ def _backend_options(args, device: str) -> dict:
 
 def _cmd_run(args) -> int:
     from benchmark.run.catalog import get_profile, load_table_spec
-    from benchmark.core.outdir import OutDirLock, check_out_dir
+    from benchmark.core.outdir import OutDirLock, check_out_dir, check_units_folder, remove_partial_files
     from benchmark.run.registry import check_weights_option, get_prior_class
 
     # everything a user can get wrong is checked here, before the body, data or any prior loads
@@ -73,6 +73,7 @@ def _cmd_run(args) -> int:
     profile = get_profile(profile_name, table=spec["name"])
     out = check_out_dir(args.out)  # cheap, and the costliest mistake to find late: first
     _check_table_files(out, spec["name"])
+    check_units_folder(out)
     priors = args.prior or default_priors(spec)
     twice = sorted({p for p in priors if priors.count(p) > 1})
     if twice:
@@ -86,6 +87,7 @@ def _cmd_run(args) -> int:
     parse_body_spec(args.body)
     _check_data_arg(args.data)
     with OutDirLock(out, command="python -m benchmark " + " ".join(sys.argv[1:])):
+        remove_partial_files(out)  # a killed run's half-written files: only ours, and no other run writes here
         return _run_locked(args, spec, device, profile_name, profile, priors, weights, out)
 
 

@@ -8,8 +8,10 @@ temporary folder (:class:`benchmark.run.backends.ProcessBackend`), keeps every u
 releases the ``--out`` lock; :func:`benchmark.cli.main` then prints one line and exits 130 (SIGINT)
 or 143 (SIGTERM, 128 + 15). A rerun with the same command resumes from the stored units.
 
-A second SIGTERM while the first one unwinds is ignored, so it cannot cut the cleanup short. The
-handler is a Python function: a worker started with ``spawn`` does not inherit it (an ``exec``
+A second SIGTERM while the first one unwinds is ignored, so it cannot cut the cleanup short; so is
+a second Ctrl-C within :data:`SIGINT_GRACE_S` of the first (:func:`sigint_once`: users press it
+again when the stop takes a second), and ``python -m benchmark`` ignores both once it has printed
+its stop line, while the interpreter exits. The handler is a Python function: a worker started with ``spawn`` does not inherit it (an ``exec``
 resets handled signals), so no worker ever runs the driver's cleanup.
 """
 
@@ -17,10 +19,11 @@ from __future__ import annotations
 
 import signal
 import threading
+import time
 from contextlib import contextmanager
 
 __all__ = ["EXIT_SIGINT", "EXIT_SIGTERM", "Terminated", "add_stop_note", "exit_code", "is_terminated_handler",
-           "sigterm_raises", "stop_message"]
+           "sigint_once", "sigterm_raises", "stop_message"]
 
 EXIT_SIGINT = 128 + signal.SIGINT  # 130, what a shell reports for a process killed by Ctrl-C
 EXIT_SIGTERM = 128 + signal.SIGTERM  # 143
@@ -76,6 +79,38 @@ def sigterm_raises():
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
         _raised[0] = False
+
+
+SIGINT_GRACE_S = 15.0  # a Ctrl-C this soon after the first one is ignored: the run is stopping already
+_interrupted = [None]  # time.monotonic() of the Ctrl-C being handled (reset by each sigint_once)
+
+
+def _raise_interrupt(signum, frame) -> None:
+    first = _interrupted[0]
+    if first is not None and time.monotonic() - first < SIGINT_GRACE_S:
+        return  # the first one is unwinding: stopping workers, removing files, releasing --out
+    _interrupted[0] = time.monotonic()
+    raise KeyboardInterrupt
+
+
+@contextmanager
+def sigint_once():
+    """Within the block, Ctrl-C raises KeyboardInterrupt as usual, but a second one within
+    :data:`SIGINT_GRACE_S` seconds is ignored, so that pressing it again cannot cut the first one's
+    cleanup short (workers left running, the executor's folder or the ``--out`` lock left behind, a
+    traceback printed). Later, it raises again (should code have swallowed the first). Does nothing
+    outside the main thread or where SIGINT is not Python's default handler (ignored, or replaced)."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield
+        return
+    _interrupted[0] = None
+    signal.signal(signal.SIGINT, _raise_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        _interrupted[0] = None
 
 
 def exit_code(exc: BaseException) -> int:

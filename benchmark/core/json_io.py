@@ -64,10 +64,53 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return path
 
 
+def atomic_write_texts(files: "dict[str | os.PathLike, str]") -> list[Path]:
+    """Write several files (path -> text) as one set: every temp file is written and synced first,
+    and only then are they renamed into place. A full disk or an error on any of them leaves every
+    old file as it was (never the new JSON beside the old Markdown of another run); the renames
+    themselves need no space."""
+    staged: list[tuple[str, Path]] = []
+    try:
+        for path, text in files.items():
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+            staged.append((tmp, path))
+            try:
+                os.fchmod(fd, 0o666 & ~current_umask())
+            except (AttributeError, OSError):
+                pass
+            try:
+                with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+                    fh.write(text)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+            except OSError as exc:
+                if exc.filename is None and exc.errno is not None:
+                    raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+                raise
+        while staged:
+            tmp, path = staged[0]
+            os.replace(tmp, path)
+            staged.pop(0)
+            _fsync_dir(path.parent)
+    finally:
+        for tmp, _ in staged:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+    return [Path(p) for p in files]
+
+
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
     """:func:`atomic_write_text` of ``obj`` as indented JSON (sorted keys; NaN/inf rejected)."""
-    text = json.dumps(obj, indent=1, sort_keys=True, ensure_ascii=False, allow_nan=False) + "\n"
-    return atomic_write_text(path, text)
+    return atomic_write_text(path, json_text(obj))
+
+
+def json_text(obj: Any) -> str:
+    """The text of a JSON file the harness writes: indented, sorted keys, NaN/inf rejected."""
+    return json.dumps(obj, indent=1, sort_keys=True, ensure_ascii=False, allow_nan=False) + "\n"
 
 
 def _fsync_dir(folder: Path) -> None:

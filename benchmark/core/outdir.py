@@ -25,6 +25,7 @@ import errno
 import json
 import logging
 import os
+import re
 import shutil
 import socket
 import tempfile
@@ -93,6 +94,58 @@ def check_out_dir(out: str | os.PathLike, min_free_bytes: int = MIN_FREE_BYTES, 
     return path
 
 
+def check_units_folder(out: str | os.PathLike, what: str = "--out") -> Path:
+    """Before any work: a table run stores each unit in ``<out>/units/`` and moves stale ones to
+    ``<out>/units/stale/``; either one that exists must be a folder this process can write into,
+    else every unit would be computed and then fail to be stored. Creates ``units/``; raises
+    :class:`OutDirError` naming the path and the fix."""
+    units = Path(out) / "units"
+    for folder in (units, units / "stale"):
+        if folder.exists() and not folder.is_dir():
+            raise OutDirError(f"{what} {out}: {folder} is a file, not the folder the run keeps its work units in; "
+                              "move it away or choose another --out")
+    try:
+        units.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutDirError(f"{what} {out}: cannot create {units} ({exc.strerror or exc}); fix the permissions of "
+                          f"{out} or choose another --out") from None
+    for folder in (units, units / "stale"):
+        if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
+            raise OutDirError(f"{what} {out}: {folder} is not writable; the run stores (and moves aside) its work "
+                              f"units there: fix its permissions (chmod u+w {folder}) or choose another --out")
+    return units
+
+
+# the temporary files of an atomic write (benchmark.core.json_io, benchmark.data.unit_arrays):
+# ".<name>.<mkstemp's 8 random characters>.tmp", renamed to <name> once complete
+_TEMP_FILE = re.compile(r"\.[^/]+\.(?:json|npz|md|csv|tex)\.[A-Za-z0-9_]{8}\.tmp")
+
+
+def remove_partial_files(out: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files of atomic writes that a run killed outright (SIGKILL, a lost node,
+    the out-of-memory killer) left half-written in ``out`` and ``out/units``: each is a file the run
+    had not finished, never a result. Call it only while holding the folder's :class:`OutDirLock`
+    (no other run can be writing there). Returns the files removed."""
+    removed = []
+    for folder in (Path(out), Path(out) / "units"):
+        try:
+            entries = list(os.scandir(folder))
+        except OSError:
+            continue
+        for entry in entries:
+            if not _TEMP_FILE.fullmatch(entry.name) or not entry.is_file(follow_symlinks=False):
+                continue
+            try:
+                os.unlink(entry.path)
+            except OSError:
+                continue
+            removed.append(Path(entry.path))
+    if removed:
+        log.info("removed %d half-written file(s) left by a run that was killed (%s)", len(removed),
+                 ", ".join(p.name for p in removed[:3]) + (" ..." if len(removed) > 3 else ""))
+    return removed
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -103,6 +156,40 @@ def _pid_alive(pid: int) -> bool:
     except OSError:
         return True
     return True
+
+
+# a live process with the lock's pid that started this long after the lock was written is not its
+# owner (the owner writes the lock after it starts): the pid was reused. The slack absorbs the
+# rounding of the kernel's boot time and small clock adjustments.
+PID_REUSE_SLACK_S = 10.0
+
+
+def _process_start_time(pid: int) -> float | None:
+    """When process ``pid`` started (seconds since the epoch), from ``/proc`` (Linux); None where
+    it cannot be read (another OS, the process gone, an unreadable ``/proc``)."""
+    try:
+        stat = Path(f"/proc/{int(pid)}/stat").read_text()
+        boot = next(float(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                    if line.startswith("btime "))
+        ticks = float(stat.rsplit(")", 1)[1].split()[19])  # field 22, starttime (comm may hold spaces)
+        return boot + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
+def _pid_reused(pid: int, started) -> bool:
+    """Whether the live process ``pid`` started after the lock naming it was written (``started``),
+    so that it cannot be the run that wrote it: the pid of a killed run, reused by another process
+    (a container restarted with the same pids, a long uptime)."""
+    if not isinstance(started, (int, float)) or isinstance(started, bool):
+        return False
+    began = _process_start_time(pid)
+    return began is not None and began > started + PID_REUSE_SLACK_S
+
+
+# the lock files this process holds (a lock naming this process's pid that is not among them was
+# left by an earlier process that had the same pid, e.g. the run before a container restart)
+_HELD: set[str] = set()
 
 
 def read_lock(path: Path) -> dict | None:
@@ -126,6 +213,9 @@ class OutDirLock:
         self.held = False
         self.took_over: dict | None = None
 
+    def _key(self) -> str:
+        return os.path.realpath(self.path)
+
     def _describe(self, info: dict) -> str:
         if not info:
             return "an unreadable lock"
@@ -146,18 +236,24 @@ class OutDirLock:
                     continue
                 same_host = info.get("host") == me["host"]
                 pid = info.get("pid")
-                if same_host and pid == me["pid"]:
+                if same_host and pid == me["pid"] and self._key() in _HELD:
                     raise OutDirError(f"--out {self.folder}: this process already holds {self.path}")
-                dead = same_host and isinstance(pid, int) and not _pid_alive(pid)
+                # gone, or its pid now another process's: this one's (it does not hold the lock), or
+                # one started after the lock was written
+                dead = same_host and isinstance(pid, int) and not isinstance(pid, bool) and (
+                    pid == me["pid"] or not _pid_alive(pid) or _pid_reused(pid, info.get("started")))
                 if not info:  # unreadable: stale only when old (a lock being written is empty for an instant)
                     try:
                         dead = time.time() - self.path.stat().st_mtime > 10
                     except FileNotFoundError:
                         continue
                 if dead:
-                    log.warning("--out %s: taking over a stale lock (%s: the process is gone)", self.folder,
-                                self._describe(info))
-                    print(f"taking over a stale lock in {self.folder} ({self._describe(info)}: no such process)", flush=True)
+                    if not info or not _pid_alive(pid):
+                        gone = "no such process"
+                    else:
+                        gone = "its pid is now " + ("this process's" if pid == me["pid"] else "another process's, started later")
+                    log.warning("--out %s: taking over a stale lock (%s: %s)", self.folder, self._describe(info), gone)
+                    print(f"taking over a stale lock in {self.folder} ({self._describe(info)}: {gone})", flush=True)
                     self.took_over = info
                     try:
                         os.unlink(self.path)
@@ -172,6 +268,7 @@ class OutDirLock:
                 with os.fdopen(fd, "w", encoding="utf-8") as fh:
                     fh.write(text)
                 self.held = True
+                _HELD.add(self._key())
                 return self
         raise OutDirError(f"--out {self.folder}: could not take the lock {self.path}; another run keeps replacing it")
 
@@ -179,6 +276,7 @@ class OutDirLock:
         if not self.held:
             return
         self.held = False
+        _HELD.discard(self._key())
         info = read_lock(self.path)
         if info and info.get("pid") == os.getpid() and info.get("host") == socket.gethostname():
             try:

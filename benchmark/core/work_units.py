@@ -236,7 +236,7 @@ def plan_units(
     seed: int,
     device: str,
     prior_info: Mapping[str, Mapping],
-    data_hashes: Mapping[str, str] | None = None,
+    data_hashes: Mapping[str, str] | None = None, threads: int = 1,
 ) -> list[WorkUnit]:
     """Split a table run into work units: every prior x every cell x every batch.
 
@@ -254,6 +254,7 @@ def plan_units(
         (:func:`benchmark.run.table_run.motion_sha256`). When given, each unit's spec holds
         ``"data": [hash per sequence of the batch]``, so a sequence whose file was replaced by
         another motion under the same name invalidates the stored result.
+    threads: each unit's torch threads (the backend's); other than 1, ``torch_threads`` in the spec (it changes numbers).
 
     Returns units in prior-major, then grid, then batch order.
     """
@@ -309,6 +310,7 @@ def plan_units(
                 }
                 if data_hashes is not None:
                     spec["data"] = [data_hashes[s] for s in batch_ids]
+                spec.update({"torch_threads": int(threads)} if threads != 1 else {})
                 units.append(WorkUnit(table=table, prior=prior, cell=dict(cell), sequence_ids=list(batch_ids),
                                       batch_index=b, seed=unit_seed, profile=profile["name"], device=device,
                                       spec=spec, spec_hash=sha256_json(spec)))

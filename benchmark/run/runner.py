@@ -47,6 +47,7 @@ from benchmark.run.backends import BACKENDS, Backend
 from benchmark.run.cap_carry import carry_problem, carry_unit
 from benchmark.data.unit_arrays import ARRAYS_KEY, arrays_path, write_arrays
 from benchmark.core.json_io import atomic_write_json
+from benchmark.core.outdir import check_units_folder
 from benchmark.core.work_units import WorkUnit, checksum_problem, unit_path, validate_unit_result, with_checksum
 
 __all__ = ["RESUME_POLICIES", "RunReport", "progress_enabled", "run_units"]
@@ -75,6 +76,7 @@ class RunReport:
     results: dict[str, dict] = field(default_factory=dict)
     reused: list[str] = field(default_factory=list)
     carried: list[str] = field(default_factory=list)
+    restored: list[str] = field(default_factory=list)  # unit ids taken back from units/stale/ (also in reused)
     ran: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
     errors: dict[str, BaseException] = field(default_factory=dict)  # unit_id -> the exception (its traceback)
@@ -97,7 +99,7 @@ class RunReport:
         for why in self.moved_why.values():
             key = why.split(" (", 1)[0]
             reasons[key] = reasons.get(key, 0) + 1
-        return {"reused": len(self.reused), "carried": len(self.carried), "recomputed": len(self.ran) + len(self.failed), "ran": len(self.ran),
+        return {"reused": len(self.reused), "carried": len(self.carried), "restored": len(self.restored), "recomputed": len(self.ran) + len(self.failed), "ran": len(self.ran),
                 "failed": len(self.failed), "moved_aside": len(self.moved), "moved_aside_reasons": reasons}
 
     def summary(self) -> str:
@@ -136,7 +138,28 @@ def move_aside(path: Path, unit_id: str, old_hash: str | None, arrays: bool = Tr
     return target
 
 
+def _stale_names(path: Path) -> list[str]:
+    try:
+        return os.listdir(path.parent / "stale")
+    except OSError:
+        return []
+
+
 SPEC_DIFFERS = "spec hash differs"
+OTHER_DEVICE = "made on another device"
+
+
+def _device_problem(stored, unit: WorkUnit) -> str | None:
+    """Why a stored unit cannot stand in this run's table for its device: the device is not in the
+    spec hash (a run on a CPU and one on a GPU plan the same units), but a fit on a GPU is not the
+    CPU's to the bit, so a table made on one device reports no unit made on another (cpu vs cuda;
+    cuda:0 vs cuda:1 is the same kind). None for an n/a unit (no fit) or a record without a device."""
+    made = stored.get("device") if isinstance(stored, dict) else None
+    if not isinstance(made, str) or made == "none" or stored.get("na_reason") is not None:
+        return None
+    if made.split(":", 1)[0] != str(unit.device).split(":", 1)[0]:
+        return f"{OTHER_DEVICE} (made on {made}, this run is on {unit.device})"
+    return None
 MOVED = "moved"  # _carry's answer when it moved the stored file aside and then failed
 
 
@@ -151,7 +174,7 @@ def _read_stored(path: Path, unit: WorkUnit) -> tuple[dict | None, str | None, s
     if not isinstance(old_hash, str):
         old_hash = None
     if old_hash != unit.spec_hash:
-        return None, old_hash, f"{SPEC_DIFFERS} (its inputs, rules, sizes, weights or seed changed)", stored
+        return None, old_hash, f"{SPEC_DIFFERS} (its inputs, rules, sizes, weights, seed or torch threads changed)", stored
     try:
         validate_unit_result(stored, unit, source=str(path))
     except ValueError as exc:
@@ -159,7 +182,37 @@ def _read_stored(path: Path, unit: WorkUnit) -> tuple[dict | None, str | None, s
     problem = checksum_problem(stored)
     if problem:
         return None, old_hash, f"checksum mismatch ({problem})", stored
+    other = _device_problem(stored, unit)
+    if other:
+        return None, old_hash, other, stored
     return stored, old_hash, None, stored
+
+
+def _restore(path: Path, unit: WorkUnit, report: "RunReport") -> dict | None:
+    """The unit's own result, taken back from ``units/stale/`` where an earlier run moved it aside
+    (a rerun under other settings into the folder, since stopped or finished): the file named for
+    its unit id and spec hash that is valid for it, checksum and device included. The unit's file
+    in its place, if any, must have been moved aside already. None when there is none."""
+    stale = path.parent / "stale"
+    stem = f"{unit.unit_id}.{unit.spec_hash[:8]}"
+    try:
+        names = sorted(n for n in os.listdir(stale) if n == f"{stem}.json" or
+                       (n.startswith(f"{stem}.") and n.endswith(".json") and n[len(stem) + 1:-5].isdigit()))
+    except OSError:
+        return None
+    for name in names:
+        candidate = stale / name
+        stored, _, why, _ = _read_stored(candidate, unit)
+        if stored is None:
+            continue
+        os.replace(candidate, path)
+        if candidate.with_suffix(".npz").exists():
+            os.replace(candidate.with_suffix(".npz"), path.with_suffix(".npz"))
+        report.restored.append(unit.unit_id)
+        log.info("%s: its result under these settings was in %s (moved aside by a run under other settings); "
+                 "taken back", unit.unit_id, candidate)
+        return stored
+    return None
 
 
 def _carry(path: Path, unit: WorkUnit, raw: dict | None, old_hash: str | None, carry, out_dir,
@@ -168,7 +221,7 @@ def _carry(path: Path, unit: WorkUnit, raw: dict | None, old_hash: str | None, c
     not (:mod:`benchmark.run.cap_carry`)."""
     if carry is None or not isinstance(raw, dict):
         return None, None
-    problem = carry_problem(raw, unit, carry(unit))
+    problem = carry_problem(raw, unit, carry(unit)) or _device_problem(raw, unit)
     if problem is not None:
         return None, problem
     target = move_aside(path, unit.unit_id, old_hash, arrays=False)  # carry_unit copies the .npz there
@@ -231,14 +284,25 @@ def run_units(
     if len(set(ids)) != len(ids):
         raise ValueError(f"run_units: unit ids repeat: {sorted({i for i in ids if ids.count(i) > 1})[:5]}")
 
+    check_units_folder(out_dir)  # a units/ that is a file would fail every unit after computing it
+
     t0 = time.perf_counter()
     report = RunReport()
     done: dict[str, dict] = {}
     todo: list[WorkUnit] = []
+
+    def restored(unit: WorkUnit, path: Path) -> bool:
+        record = _restore(path, unit, report) if resume == "only-missing" else None
+        if record is not None:
+            done[unit.unit_id] = record
+            report.reused.append(unit.unit_id)
+        return record is not None
+
     for unit in units:
         path = unit_path(out_dir, unit.unit_id)
         if not path.exists():
-            todo.append(unit)
+            if not restored(unit, path):
+                todo.append(unit)
             continue
         stored, old_hash, why, raw = _read_stored(path, unit)
         if resume == "only-missing" and stored is not None:
@@ -246,14 +310,17 @@ def run_units(
             report.reused.append(unit.unit_id)
             continue
         not_carried = None
-        if resume == "only-missing" and why is not None and why.startswith(SPEC_DIFFERS):
+        # its own result in units/stale/ is taken back below, rather than another carried over
+        own_in_stale = any(n.startswith(f"{unit.unit_id}.{unit.spec_hash[:8]}.") for n in _stale_names(path))
+        if resume == "only-missing" and why is not None and why.startswith(SPEC_DIFFERS) and not own_in_stale:
             carried, not_carried = _carry(path, unit, raw, old_hash, carry, out_dir, report)
             if carried is not None:
                 done[unit.unit_id] = carried
                 report.reused.append(unit.unit_id)
                 continue
             if not_carried == MOVED:
-                todo.append(unit)
+                if not restored(unit, path):
+                    todo.append(unit)
                 continue
         target = move_aside(path, unit.unit_id, old_hash)
         report.moved.append(target)
@@ -261,13 +328,16 @@ def run_units(
         if not_carried:
             reason = f"{reason}; not carried to the new cap: {not_carried}"
         report.moved_why[unit.unit_id] = reason
-        log.log(logging.WARNING if why and why.startswith(("checksum", "invalid", "unreadable")) else logging.INFO,
-                "%s: stored result not reused (%s); moved to %s, rerunning", unit.unit_id, reason, target)
-        todo.append(unit)
+        log.log(logging.WARNING if why and why.startswith(("checksum", "invalid", "unreadable", OTHER_DEVICE)) else logging.INFO,
+                "%s: stored result not reused (%s); moved to %s", unit.unit_id, reason, target)
+        if not restored(unit, path):
+            todo.append(unit)
     if announce:
         counts = report.resume_counts()["moved_aside_reasons"]
         why = f" ({', '.join(f'{n} {k}' for k, n in counts.items())})" if counts else ""
-        carried = f" (of them {len(report.carried)} carried to a raised step cap)" if report.carried else ""
+        kinds = [f"{len(report.carried)} carried to a raised step cap"] if report.carried else []
+        kinds += [f"{len(report.restored)} taken back from units/stale/"] if report.restored else []
+        carried = f" (of them {', '.join(kinds)})" if kinds else ""
         print(f"work units in {Path(out_dir) / 'units'}: {len(report.reused)} reused{carried}, {len(todo)} to compute, "
               f"{len(report.moved)} stored file(s) moved aside to units/stale/{why}", flush=True)
 

@@ -155,7 +155,7 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     :mod:`benchmark.run.runner`); ``backend_options``: its options (local: ``jobs``; ray: ``address``,
     ``cpus_per_unit``, ``gpus_per_unit``), see :func:`benchmark.run.backends.make_backend`. The backend
     never changes a number."""
-    from benchmark.run.backends import make_backend
+    from benchmark.run.backends import backend_threads, make_backend
     from benchmark.run.registry import check_weights_option, make_adapter
     from benchmark.run.runner import run_units
     from benchmark.run.table_derive import derive_table
@@ -193,7 +193,8 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     # enter its units' spec hash
     body_id = body_identity(body)
     data_hashes = {sid: with_body(motion_sha256(motions[sid]), body_id) for sid in ids}
-    units = plan_units(spec, profile, priors, ids, seed, device, prior_info, data_hashes=data_hashes)
+    units = plan_units(spec, profile, priors, ids, seed, device, prior_info, data_hashes=data_hashes,
+                       threads=backend_threads(run_backend))
     source = protocol.make_source(spec, body, motions, seed)
     execute = TableExecutor(protocol, spec, profile, adapters, body, source, device)
 

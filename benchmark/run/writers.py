@@ -24,7 +24,7 @@ from typing import Mapping, Sequence
 from benchmark.core.fit_diagnostics import (BACKWARDS_DEG, CONVERGED_MAX_DECREASE, CONVERGENCE_WINDOW, FLAG, MISORIENTED_DEG,
                                       cell_flagged)
 from benchmark.core.intervals import MIN_SIGNIFICANCE_SEQUENCES
-from benchmark.core.json_io import atomic_write_json, atomic_write_text
+from benchmark.core.json_io import atomic_write_texts, json_text
 from benchmark.core.work_units import grid_axes
 from benchmark.run.csv_format import format_csv
 from benchmark.run.table_derive import NO_PRIOR, cell_reason, metric_unit
@@ -444,13 +444,9 @@ def write_table(table: Mapping, out_dir: str | os.PathLike, stem: str | None = N
         raise ValueError(f"unknown output format(s) {unknown}; known: {', '.join(FORMATS)}")
     out_dir = Path(out_dir)
     stem = stem or table["table"]
-    makers = {"md": format_markdown, "csv": format_csv, "tex": format_latex}
-    paths = {}
-    for fmt in formats:
-        path = out_dir / f"{stem}.{fmt}"
-        if fmt == "json":
-            atomic_write_json(path, table)
-        else:
-            atomic_write_text(path, makers[fmt](table))
-        paths[fmt] = path
+    makers = {"md": format_markdown, "csv": format_csv, "tex": format_latex, "json": json_text}
+    paths = {fmt: out_dir / f"{stem}.{fmt}" for fmt in formats}
+    # every format made and written before any replaces its old file: a full disk or an interrupt
+    # part way never leaves this run's JSON beside an earlier run's Markdown
+    atomic_write_texts({paths[fmt]: makers[fmt](table) for fmt in formats})
     return paths

@@ -42,7 +42,7 @@ from benchmark.run.backends.local import ProcessBackend, default_jobs
 from benchmark.run.backends.ray_backend import RayBackend, code_fingerprint
 
 __all__ = ["ProcessBackend", "RayBackend", "UnitError", "WorkerDied", "affinity_key", "code_fingerprint", "default_jobs",
-           "longest_first", "make_backend", "pick_next", "serial_backend", "BACKENDS"]
+           "backend_threads", "longest_first", "make_backend", "pick_next", "serial_backend", "BACKENDS"]
 
 
 def _ray_backend(units: Sequence, execute, on_done) -> None:
@@ -57,6 +57,15 @@ Backend = Callable[[Sequence, Callable, Callable], None]
 # :func:`make_backend` builds one with options (--jobs, --ray-address...), and
 # ``benchmark.run.runner.run_units`` takes such a callable too. Add one with ``BACKENDS[name] = fn``.
 BACKENDS: dict = {"local": serial_backend, "ray": _ray_backend}
+
+
+def backend_threads(backend) -> int:
+    """The torch threads a backend runs each unit with: its ``threads`` (worker processes: 1; Ray:
+    ``--cpus-per-unit``), 1 for the serial backend. The thread count changes a fit's numbers (the
+    order of float reductions, which the optimisation amplifies), so it enters the units' spec
+    (:func:`benchmark.core.work_units.plan_units`) when it is not 1."""
+    threads = getattr(backend, "threads", 1)
+    return threads if isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1 else 1
 
 
 # --------------------------------------------------------------------------------------------
