@@ -17,6 +17,7 @@ import os
 from pathlib import Path
 
 import pytest
+import torch
 
 from benchmark.run import runner
 from benchmark.run.backends import BACKENDS, ProcessBackend, RayBackend, affinity_key, longest_first, make_backend, pick_next
@@ -47,8 +48,15 @@ def _spec(table: str) -> dict:
 
 
 def _run(table, priors, body, out, backend="local", **options):
-    result = run_table(_spec(table), get_profile("smoke", table=table), priors=priors, body=body, device="cpu",
-                       seed=0, out_dir=out, backend=backend, backend_options=options)
+    """A smoke run of ``table``; in this process (no ``jobs``) with one torch thread, as every worker
+    runs (a unit's thread count enters its spec: the serial run must make the same units)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        result = run_table(_spec(table), get_profile("smoke", table=table), priors=priors, body=body, device="cpu",
+                           seed=0, out_dir=out, backend=backend, backend_options=options)
+    finally:
+        torch.set_num_threads(before)
     assert not result["failures"], result["failures"]
     return result["table"]
 

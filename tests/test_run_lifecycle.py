@@ -214,7 +214,17 @@ def test_units_made_with_other_torch_threads_are_another_computation():
     same = [u for u in one if u.prior == one[0].prior]
     assert [u.unit_id for u in two] == [u.unit_id for u in same]
     assert all(a.spec_hash != b.spec_hash and b.spec["torch_threads"] == 2 for a, b in zip(same, two))
-    assert backend_threads(serial_backend) == 1 and backend_threads(ProcessBackend(2)) == 1
+    assert backend_threads(ProcessBackend(2)) == 1
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)  # the serial backend runs units in this process, with its threads
+        assert backend_threads(serial_backend) == 1
+        torch.set_num_threads(2)
+        assert backend_threads(serial_backend) == 2
+    finally:
+        torch.set_num_threads(before)
     assert backend_threads(RayBackend(cpus_per_unit=2)) == 2 and backend_threads(RayBackend(cpus_per_unit=0.5)) == 1
 
 

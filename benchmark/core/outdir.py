@@ -97,18 +97,21 @@ def check_out_dir(out: str | os.PathLike, min_free_bytes: int = MIN_FREE_BYTES, 
 def check_units_folder(out: str | os.PathLike, what: str = "--out") -> Path:
     """Before any work: a table run stores each unit in ``<out>/units/`` and moves stale ones to
     ``<out>/units/stale/``; either one that exists must be a folder this process can write into,
-    else every unit would be computed and then fail to be stored. Creates ``units/``; raises
-    :class:`OutDirError` naming the path and the fix."""
+    else every unit would be computed and then fail to be stored. Creates nothing (a run refused
+    before its first unit leaves no folder behind); raises :class:`OutDirError` naming the path and
+    the fix."""
     units = Path(out) / "units"
     for folder in (units, units / "stale"):
         if folder.exists() and not folder.is_dir():
             raise OutDirError(f"{what} {out}: {folder} is a file, not the folder the run keeps its work units in; "
                               "move it away or choose another --out")
-    try:
-        units.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutDirError(f"{what} {out}: cannot create {units} ({exc.strerror or exc}); fix the permissions of "
-                          f"{out} or choose another --out") from None
+    if not units.exists():
+        parent = units.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+            raise OutDirError(f"{what} {out}: cannot create {units} ({parent} is not a writable folder); fix the "
+                              f"permissions of {parent} or choose another --out")
     for folder in (units, units / "stale"):
         if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
             raise OutDirError(f"{what} {out}: {folder} is not writable; the run stores (and moves aside) its work "

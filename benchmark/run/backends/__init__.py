@@ -61,9 +61,14 @@ BACKENDS: dict = {"local": serial_backend, "ray": _ray_backend}
 
 def backend_threads(backend) -> int:
     """The torch threads a backend runs each unit with: its ``threads`` (worker processes: 1; Ray:
-    ``--cpus-per-unit``), 1 for the serial backend. The thread count changes a fit's numbers (the
-    order of float reductions, which the optimisation amplifies), so it enters the units' spec
-    (:func:`benchmark.core.work_units.plan_units`) when it is not 1."""
+    ``--cpus-per-unit``); the serial backend runs units in this process, with its torch threads (all
+    the cores unless OMP_NUM_THREADS or torch.set_num_threads says otherwise). The thread count
+    changes a fit's numbers (the order of float reductions, which the optimisation amplifies), so it
+    enters the units' spec (:func:`benchmark.core.work_units.plan_units`) when it is not 1."""
+    if backend is serial_backend:
+        import torch
+
+        return max(1, torch.get_num_threads())
     threads = getattr(backend, "threads", 1)
     return threads if isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1 else 1
 
