@@ -8,7 +8,9 @@ The nearest neighbours come from compiled uniform grids (:mod:`benchmark.metrics
 one grid per observed frame built here, one per mesh frame built at each call by a counting sort
 (a fifth to an eighth of a KD-tree's build), every frame of the batch in one compiled call. Where
 numba is missing, from KD-trees (pykdtree, else scipy). Both are exact: they return the same
-nearest neighbours (up to points at exactly the same distance), so the same loss.
+nearest neighbours (up to points at exactly the same distance), so the same loss. Once the mesh
+moves little from one call to the next, most answers come from neighbour lists kept across calls
+(:mod:`benchmark.metrics.neighbour_lists`), exact too; the rest are searched.
 """
 
 from __future__ import annotations
@@ -37,6 +39,9 @@ from benchmark.metrics.chamfer import (
     validate_lengths,
     validate_points,
 )
+
+
+USE_NEIGHBOUR_LISTS = True  # answer from neighbour lists kept across calls (exact; False: search every call)
 
 
 def _chunks(n_batch: int) -> list[slice]:
@@ -76,6 +81,7 @@ class StaticChamfer:
         self.cached = on_cpu and (self.grids or pykdtree_class() is not None)
         self._a_order = None
         self._hints = None
+        self._lists = None  # neighbour lists (MovingQueryLists, FixedQueryLists), made on first need
         if not self.cached:
             return
         b_np = self.b.to(torch.float64).numpy()
@@ -165,10 +171,51 @@ class StaticChamfer:
                 np.ascontiguousarray(b_np[sl]), bl[sl], None if b_order is None else b_order[sl], out=idx_ba[sl],
                 hints=None if hints is None else hints[1][sl])
 
-        map_elements(run, len(self._chunks))
+        if b_order is not None and USE_NEIGHBOUR_LISTS and grid_nn.HAVE_NUMBA:
+            self._listed_indices(a_np, al, idx_ab, idx_ba, hints)
+        else:
+            map_elements(run, len(self._chunks))
         if b_order is not None:
             self._hints = (idx_ab.copy(), idx_ba.copy(), al.copy())
         return torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
+
+    def _listed_indices(self, a_np, al, idx_ab, idx_ba, hints) -> None:
+        """:meth:`_grid_indices` for the fixed points, from neighbour lists kept across calls
+        (:mod:`benchmark.metrics.neighbour_lists`): the same answers; a query its list cannot
+        answer is searched on the grids as before."""
+        from benchmark.metrics.neighbour_lists import FixedQueryLists, MovingQueryLists
+
+        if self._lists is None:
+            self._lists = (MovingQueryLists(self._b_np, self._bl_np), FixedQueryLists(self._b_np, self._bl_np))
+        searched = self._lists[0].nearest(a_np, al, idx_ab)
+        if searched:  # frames still moving fast: searched on the fixed points' grids, as without lists
+            ql = np.zeros_like(al)
+            ql[searched] = al[searched]
+            for c, sl in enumerate(self._chunks):
+                self._b_grids[c].nearest(np.ascontiguousarray(a_np[sl]), ql[sl], self._a_order_arr[sl], out=idx_ab[sl],
+                                         hints=None if hints is None else hints[0][sl])
+        left, whole = self._lists[1].nearest(a_np, al, idx_ba)
+        if whole:  # frames still moving fast: searched whole, as without lists
+            ns = np.array(sorted(whole), dtype=np.int64)
+            found = np.full((ns.shape[0], self._b_np.shape[1]), -1, dtype=np.int64)
+            grid_nn.PointGrids(np.ascontiguousarray(a_np[ns]), al[ns]).nearest(
+                self._b_np[ns], self._bl_np[ns], self._b_order_arr[ns], out=found,
+                hints=None if hints is None else np.ascontiguousarray(hints[1][ns]))
+            idx_ba[ns] = found
+        if not left:
+            return
+        ns = np.array([n for n, _ in left], dtype=np.int64)
+        width = max(rows.shape[0] for _, rows in left)
+        q = np.zeros((len(left), width, 3))
+        ql = np.array([rows.shape[0] for _, rows in left], dtype=np.int64)
+        h = np.full((len(left), width), -1, dtype=np.int64)
+        for j, (n, rows) in enumerate(left):
+            q[j, : rows.shape[0]] = self._b_np[n, rows]
+            if hints is not None:
+                h[j, : rows.shape[0]] = hints[1][n, rows]
+        found = grid_nn.PointGrids(np.ascontiguousarray(a_np[ns]), al[ns]).nearest(q, ql, hints=h)
+        for j, (n, rows) in enumerate(left):
+            idx_ba[n, rows] = found[j, : rows.shape[0]]
 
     def sample_b(self, m: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(N, min(m, Q), 3) points of ``b`` drawn uniformly with replacement from each element's valid

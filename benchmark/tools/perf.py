@@ -363,6 +363,10 @@ def format_report(r: dict) -> str:
         lines.append("")
     if r.get("plateau"):
         lines += format_plateau(r["plateau"])
+    if r.get("lists"):
+        from benchmark.tools.perf_lists import format_lists
+
+        lines += format_lists(r["lists"])
     if r.get("cuda"):
         c = r["cuda"]
         lines += [f"## CUDA ({c['device']}): tiled {_fmt(c.get('tiled_ms'))} ms/frame, peak {_fmt(c.get('tiled_peak_mib'))} MiB; "
@@ -429,6 +433,10 @@ def run_perf(device: str = "cpu", quick: bool = True, out: str | Path = "perf", 
             report["adam"] = adam_steps_table1(steps=4 if quick else 10)
         if "plateau" in parts:
             report["plateau"] = plateau_descent_compare()
+        if "lists" in parts:
+            from benchmark.tools.perf_lists import lists_compare
+
+            report["lists"] = lists_compare()
         if "cuda" in parts and device.startswith("cuda"):
             report["cuda"] = cuda_compare()
     finally:
