@@ -49,60 +49,51 @@ def _njit(fn):
 
 
 @_njit
+def _answer(q, n, i, cand, pts, lim, out, fail, nf):
+    """Query (n, i): its list's nearest candidate into ``out`` if closer than ``lim`` (the bound
+    less the displacement and the slack), else (n, i) into ``fail[nf]``. Returns the new ``nf``."""
+    qx, qy, qz = q[n, i, 0], q[n, i, 1], q[n, i, 2]
+    best, bd = -1, np.inf
+    for k in range(cand.shape[2]):
+        c = cand[n, i, k]
+        if c < 0:
+            break
+        ex, ey, ez = pts[n, c, 0] - qx, pts[n, c, 1] - qy, pts[n, c, 2] - qz
+        d = ex * ex + ey * ey + ez * ez
+        if d < bd:
+            bd, best = d, c
+    if best >= 0 and lim > 0.0 and bd < lim * lim:
+        out[n, i] = best
+        return nf
+    fail[nf, 0], fail[nf, 1] = n, i
+    return nf + 1
+
+
+@_njit
 def _check_fixed_points(q, ql, ref, cand, bound, pts, live, out, fail):
-    """MovingQueryLists: answer each valid query from its list where the bound holds; the others'
-    (element, query) pairs go to ``fail``. Elements with ``live[n]`` False are skipped. Returns the
-    count of failures."""
+    """MovingQueryLists: answer each valid query from its list where the bound, less the query's
+    own displacement since, holds; the others' (element, query) pairs go to ``fail``. Elements with
+    ``live[n]`` False are skipped. Returns the count of failures."""
     nf = 0
     for n in range(q.shape[0]):
         if not live[n]:
             continue
         for i in range(ql[n]):
-            qx, qy, qz = q[n, i, 0], q[n, i, 1], q[n, i, 2]
-            dx, dy, dz = qx - ref[n, i, 0], qy - ref[n, i, 1], qz - ref[n, i, 2]
-            lim = bound[n, i] - np.sqrt(dx * dx + dy * dy + dz * dz) - SLACK
-            best, bd = -1, np.inf
-            for k in range(cand.shape[2]):
-                c = cand[n, i, k]
-                if c < 0:
-                    break
-                ex, ey, ez = pts[n, c, 0] - qx, pts[n, c, 1] - qy, pts[n, c, 2] - qz
-                d = ex * ex + ey * ey + ez * ez
-                if d < bd:
-                    bd, best = d, c
-            if best >= 0 and lim > 0.0 and bd < lim * lim:
-                out[n, i] = best
-            else:
-                fail[nf, 0], fail[nf, 1] = n, i
-                nf += 1
+            dx, dy, dz = q[n, i, 0] - ref[n, i, 0], q[n, i, 1] - ref[n, i, 1], q[n, i, 2] - ref[n, i, 2]
+            nf = _answer(q, n, i, cand, pts, bound[n, i] - np.sqrt(dx * dx + dy * dy + dz * dz) - SLACK, out, fail, nf)
     return nf
 
 
 @_njit
 def _check_fixed_queries(q, ql, cand, bound, pts, delta, live, out, fail):
     """FixedQueryLists: as :func:`_check_fixed_points` with one displacement ``delta[n]`` per
-    element."""
+    element (its points' largest)."""
     nf = 0
     for n in range(q.shape[0]):
         if not live[n]:
             continue
         for i in range(ql[n]):
-            best, bd = -1, np.inf
-            lim = bound[n, i] - delta[n] - SLACK
-            qx, qy, qz = q[n, i, 0], q[n, i, 1], q[n, i, 2]
-            for k in range(cand.shape[2]):
-                c = cand[n, i, k]
-                if c < 0:
-                    break
-                ex, ey, ez = pts[n, c, 0] - qx, pts[n, c, 1] - qy, pts[n, c, 2] - qz
-                d = ex * ex + ey * ey + ez * ez
-                if d < bd:
-                    bd, best = d, c
-            if best >= 0 and lim > 0.0 and bd < lim * lim:
-                out[n, i] = best
-            else:
-                fail[nf, 0], fail[nf, 1] = n, i
-                nf += 1
+            nf = _answer(q, n, i, cand, pts, bound[n, i] - delta[n] - SLACK, out, fail, nf)
     return nf
 
 
