@@ -191,9 +191,12 @@ class StaticChamfer:
         if searched:  # frames still moving fast: searched on the fixed points' grids, as without lists
             ql = np.zeros_like(al)
             ql[searched] = al[searched]
-            for c, sl in enumerate(self._chunks):
+            def search(c: int) -> None:
+                sl = self._chunks[c]
                 self._b_grids[c].nearest(np.ascontiguousarray(a_np[sl]), ql[sl], self._a_order_arr[sl], out=idx_ab[sl],
                                          hints=None if hints is None else hints[0][sl])
+
+            map_elements(search, len(self._chunks))
         left, whole = self._lists[1].nearest(a_np, al, idx_ba)
         if whole:  # frames still moving fast: searched whole, as without lists
             ns = np.array(sorted(whole), dtype=np.int64)
