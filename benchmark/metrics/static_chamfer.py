@@ -191,6 +191,7 @@ class StaticChamfer:
         if searched:  # frames still moving fast: searched on the fixed points' grids, as without lists
             ql = np.zeros_like(al)
             ql[searched] = al[searched]
+
             def search(c: int) -> None:
                 sl = self._chunks[c]
                 self._b_grids[c].nearest(np.ascontiguousarray(a_np[sl]), ql[sl], self._a_order_arr[sl], out=idx_ab[sl],
