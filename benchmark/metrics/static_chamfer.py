@@ -162,6 +162,16 @@ class StaticChamfer:
         if hints is not None and (hints[0].shape != idx_ab.shape or not np.array_equal(hints[2], al)):
             hints = None
 
+        if b_order is not None and USE_NEIGHBOUR_LISTS and grid_nn.HAVE_NUMBA:
+            self._listed_indices(a_np, al, idx_ab, idx_ba, hints)
+        else:
+            self._searched_indices(a_np, al, b_np, bl, b_order, hints, idx_ab, idx_ba)
+        if b_order is not None:
+            self._hints = (idx_ab.copy(), idx_ba.copy(), al.copy())
+        return torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
+
+    def _searched_indices(self, a_np, al, b_np, bl, b_order, hints, idx_ab, idx_ba) -> None:
+        """Fill ``idx_ab`` and ``idx_ba`` by searching the grids (every element, on every thread)."""
         def run(c: int) -> None:
             sl = self._chunks[c]
             a_c = np.ascontiguousarray(a_np[sl])
@@ -171,13 +181,7 @@ class StaticChamfer:
                 np.ascontiguousarray(b_np[sl]), bl[sl], None if b_order is None else b_order[sl], out=idx_ba[sl],
                 hints=None if hints is None else hints[1][sl])
 
-        if b_order is not None and USE_NEIGHBOUR_LISTS and grid_nn.HAVE_NUMBA:
-            self._listed_indices(a_np, al, idx_ab, idx_ba, hints)
-        else:
-            map_elements(run, len(self._chunks))
-        if b_order is not None:
-            self._hints = (idx_ab.copy(), idx_ba.copy(), al.copy())
-        return torch.from_numpy(idx_ab), torch.from_numpy(idx_ba)
+        map_elements(run, len(self._chunks))
 
     def _listed_indices(self, a_np, al, idx_ab, idx_ba, hints) -> None:
         """:meth:`_grid_indices` for the fixed points, from neighbour lists kept across calls

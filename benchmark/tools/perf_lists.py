@@ -15,7 +15,6 @@ import time
 import numpy as np
 import torch
 
-from benchmark.metrics import grid_nn
 from benchmark.metrics import static_chamfer as sc
 
 WINDOW = 50  # steps per printed window
@@ -43,13 +42,7 @@ def lists_compare(points: int = 10000, fps: int = 5, prior: str = "no-prior") ->
         if hints is not None and (hints[0].shape != idx_ab.shape or not np.array_equal(hints[2], al)):
             hints = None
         t0 = time.perf_counter()
-        for c, sl in enumerate(self._chunks):
-            a_c = np.ascontiguousarray(a_np[sl])
-            self._b_grids[c].nearest(a_c, al[sl], self._a_order_arr[sl], out=idx_ab[sl],
-                                     hints=None if hints is None else hints[0][sl])
-            grid_nn.PointGrids(a_c, al[sl]).nearest(np.ascontiguousarray(b_np[sl]), bl[sl],
-                                                    None if b_order is None else b_order[sl], out=idx_ba[sl],
-                                                    hints=None if hints is None else hints[1][sl])
+        self._searched_indices(a_np, al, b_np, bl, b_order, hints, idx_ab, idx_ba)
         t1 = time.perf_counter()
         if b_order is not None:
             ab, ba = np.full_like(idx_ab, -1), np.full_like(idx_ba, -1)
