@@ -8,7 +8,28 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
-torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
+# Under pytest-xdist (the default: ``-n auto`` in pyproject.toml) each worker process runs on one
+# torch thread, so that the workers share the cores instead of oversubscribing them; a run without
+# workers (``-n 0``) uses up to two threads.
+IN_WORKER = bool(os.environ.get("PYTEST_XDIST_WORKER"))
+torch.set_num_threads(1 if IN_WORKER else max(1, min(2, torch.get_num_threads())))
+
+MAX_WORKERS = 4  # each worker holds its own body model and data (about 1-2 GB): more cores than this gain little
+# Test files that start Ray (a local runtime, or a two-node cluster with `ray start`) run on one
+# worker, one after the other (``--dist loadgroup``): two Ray runtimes started at once on one machine
+# may find each other's session instead of their own.
+RAY_TEST_FILES = ("test_backends.py", "test_ray_cluster.py", "test_signals.py")
+
+
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: the machine's cores, at most MAX_WORKERS."""
+    return max(1, min(MAX_WORKERS, os.cpu_count() or 1))
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if os.path.basename(str(item.fspath)) in RAY_TEST_FILES:
+            item.add_marker(pytest.mark.xdist_group(name="ray"))
 
 
 @pytest.fixture(scope="session")
