@@ -61,16 +61,16 @@ def body_parameters(state: FitState, timestamps: torch.Tensor, observed: bool = 
     kind = a.window.kind
     shape = state.shape() if a.shape_conditioned else None
     if kind == "per-frame":
-        dec = a.decode(state.latents, state.obs_t, shape)
+        dec = _decode_output(a, a.decode(state.latents, state.obs_t, shape), state.shape_param)
         rot = dec.rotations if observed else slerp_frames(dec.rotations, state.obs_t, timestamps)
         trans = None if dec.trans is None else (dec.trans if observed else lerp_frames(dec.trans, state.obs_t, timestamps))
     elif kind == "fixed":
         grid = decode_grid(a, state.window_s, timestamps.shape[0], timestamps.device)
-        dec = a.decode(state.latents, grid, shape)
+        dec = _decode_output(a, a.decode(state.latents, grid, shape), state.shape_param)
         rot = slerp_frames(dec.rotations, grid, timestamps)
         trans = None if dec.trans is None else lerp_frames(dec.trans, grid, timestamps)
     elif kind == "continuous":
-        dec = a.decode(state.latents, timestamps, shape)
+        dec = _decode_output(a, a.decode(state.latents, timestamps, shape), state.shape_param)
         rot, trans = dec.rotations, dec.trans
     else:
         raise ValueError(f"prior {a.name!r}: unknown window kind {kind!r}")
@@ -100,6 +100,30 @@ def apply_free_rigid(state: FitState, rot: torch.Tensor, trans: torch.Tensor | N
     if state.offset is not None:
         trans = trans + state.offset[:, None]
     return rot, trans
+
+
+def _decode_output(adapter, dec, like: torch.Tensor) -> Decoded:
+    """``dec``, what ``adapter.decode`` returned, checked before it is interpolated or skinned: a
+    :class:`Decoded` of tensors with ``like``'s (the body's) dtype and device, with a translation
+    where the prior declares ``encodes_translation``. A ValueError naming the prior, the field and
+    the fix otherwise (not torch's dtype error inside the body, or a TypeError adding None)."""
+    name = adapter.name
+    if not isinstance(dec, Decoded):
+        raise ValueError(f"prior {name!r}: decode returned {type(dec).__name__}, expected a priors.base.Decoded"
+                         "(rotations=..., trans=...)")
+    for field_name, t in (("rotations", dec.rotations), ("trans", dec.trans)):
+        if t is None and field_name == "trans":
+            continue
+        if not torch.is_tensor(t) or t.dtype != like.dtype or t.device != like.device:
+            got = f"{t.dtype} on {t.device}" if torch.is_tensor(t) else type(t).__name__
+            raise ValueError(f"prior {name!r}: decode returned {field_name} as {got}, expected {like.dtype} on "
+                             f"{like.device} (the body's; timestamps are float64: cast what you compute from them "
+                             "to the latents' dtype and device)")
+    if adapter.encodes_translation and dec.trans is None:
+        raise ValueError(f"prior {name!r} declares encodes_translation = True but decode returned trans=None: return "
+                         "the decoded translation (B, T, 3), or declare encodes_translation = False (the protocol "
+                         "then fits a free per-frame translation)")
+    return dec
 
 
 def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
