@@ -74,3 +74,22 @@ def test_encodes_translation_without_a_decoded_translation_is_named():
     with pytest.raises(ValueError, match=r"prior 'pull' declares encodes_translation = True but decode returned "
                                          r"trans=None.*or declare encodes_translation = False"):
         body_parameters(st, st.obs_t, observed=True)
+
+
+def test_a_frozen_network_that_is_no_submodule_is_named_as_the_declaration():
+    from benchmark.run.registry import make_adapter, register, unregister
+
+    class WrongFrozen(Pull):
+        frozen_network = "model"  # the network is self.net
+
+        def __init__(self, size="embedded", weights=None, device="cpu"):
+            super().__init__(size=size, weights=weights, device=device)
+            self.net = torch.nn.Linear(3, 3)
+
+    register("wrong-frozen", WrongFrozen)
+    try:
+        with pytest.raises(ValueError, match=r"prior 'pull' declares frozen_network = 'model', but has no submodule "
+                                             r"of that name .*e.g. self.net = ... and frozen_network = 'net'"):
+            make_adapter("wrong-frozen")
+    finally:
+        unregister("wrong-frozen")
