@@ -93,3 +93,83 @@ def test_a_frozen_network_that_is_no_submodule_is_named_as_the_declaration():
             make_adapter("wrong-frozen")
     finally:
         unregister("wrong-frozen")
+
+
+def _check(cls, capsys):
+    from benchmark.run.registry import register, unregister
+    from benchmark.tools.conformance import check_prior
+
+    register(cls.name, cls)
+    try:
+        ok = check_prior(cls.name, steps=3, verbose=True)
+    finally:
+        unregister(cls.name)
+    return ok, capsys.readouterr().out
+
+
+def test_check_prior_fails_a_prior_term_with_no_gradient(capsys):
+    """A prior term computed from detached latents adds a constant: the fit has no prior at all,
+    and table1 reports it as the prior's row."""
+
+    class Detached(Pull):
+        name = "detached-prior"
+
+        def prior_term(self, latents):
+            return super().prior_term({k: v.detach() for k, v in latents.items()})
+
+    ok, out = _check(Detached, capsys)
+    assert not ok, out
+    assert "[FAIL] 100 pts / 5 fps: gradients reach the latents" in out
+    assert "no gradient of it reaches the latents" in out and "no prior at all" in out
+
+
+def test_check_prior_fails_a_nan_gradient_at_the_mean_start(capsys):
+    """|z| (not squared) as the prior term and mean_latents at its minimum: the gradient there is NaN,
+    so table1 (which starts at mean_latents) fails at its first step; check-prior used to fit from
+    init_latents only and pass."""
+
+    class Norm(Pull):
+        name = "norm-prior"
+
+        def mean_latents(self, batch):
+            return {"pose": self.eye6.expand(batch.batch_size, batch.num_observed, 21, 6).clone()}
+
+        def prior_term(self, latents):
+            return (latents["pose"] - self.eye6).square().sum((-1, -2, -3)).sqrt()
+
+    ok, out = _check(Norm, capsys)
+    assert not ok, out
+    assert "[FAIL] 100 pts / 5 fps: gradients at mean_latents" in out
+    assert "prior_term's gradient at mean_latents (table1's start) is NaN or inf" in out
+
+
+def test_nan_latents_are_named_as_a_gradient_problem_not_the_decoder():
+    from benchmark.protocols.fit_state import _check_decoded
+
+    rot = torch.full((1, 4, 22, 3, 3), float("nan"))
+    with pytest.raises(ValueError, match=r"prior 'pull': its latents \['pose'\] are NaN or inf: a fit step had a NaN"):
+        _check_decoded(Pull(), Decoded(rot, None), torch.zeros(1, 4), {"pose": torch.full((1, 4, 21, 6), float("nan"))})
+
+
+def test_check_prior_fails_rotations_that_leave_so3_during_the_fit(capsys):
+    """Raw 3x3 matrices as latents start orthonormal (the identity) and drift off during the fit: the
+    mesh is then sheared and scaled to fit the points, a silent wrong number."""
+
+    class RawMatrix(Pull):
+        name = "raw-matrix"
+
+        def init_latents(self, batch, generator):
+            return {"pose": torch.eye(3).expand(batch.batch_size, batch.num_observed, 21, 3, 3).clone()}
+
+        def decode(self, latents, timestamps, shape=None):
+            body = latents["pose"]
+            root = torch.eye(3, dtype=body.dtype).expand(*body.shape[:2], 1, 3, 3)
+            return Decoded(rotations=torch.cat([root, body], dim=2))
+
+        def prior_term(self, latents):
+            return (latents["pose"] - torch.eye(3)).square().sum((-1, -2)).mean((-1, -2))
+
+    ok, out = _check(RawMatrix, capsys)
+    assert not ok, out
+    assert "[FAIL] 100 pts / 5 fps: finite losses, determinism under a seed" in out
+    assert "after 3 steps decode's rotations are not orthonormal" in out

@@ -74,7 +74,7 @@ def body_parameters(state: FitState, timestamps: torch.Tensor, observed: bool = 
         rot, trans = dec.rotations, dec.trans
     else:
         raise ValueError(f"prior {a.name!r}: unknown window kind {kind!r}")
-    _check_decoded(a, Decoded(rot, trans), timestamps)
+    _check_decoded(a, Decoded(rot, trans), timestamps, state.latents)
     return apply_free_rigid(state, rot, trans, timestamps, observed)
 
 
@@ -126,7 +126,7 @@ def _decode_output(adapter, dec, like: torch.Tensor) -> Decoded:
     return dec
 
 
-def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
+def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor, latents: dict | None = None) -> None:
     B, T = timestamps.shape
     if dec.rotations.shape[:3] != (B, T, 22) or dec.rotations.shape[-2:] != (3, 3):
         raise ValueError(
@@ -136,6 +136,11 @@ def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
     if dec.trans is not None and dec.trans.shape != (B, T, 3):
         raise ValueError(f"prior {adapter.name!r}: decode returned trans {tuple(dec.trans.shape)}, expected {(B, T, 3)}")
     if not bool(torch.isfinite(dec.rotations).all()) or (dec.trans is not None and not bool(torch.isfinite(dec.trans).all())):
+        bad = sorted(k for k, v in (latents or {}).items() if v.is_floating_point() and not bool(torch.isfinite(v).all()))
+        if bad:  # the decoder was given NaN: a step's gradient was not finite
+            raise ValueError(f"prior {adapter.name!r}: its latents {bad} are NaN or inf: a fit step had a NaN or inf "
+                             "gradient (prior_term's or decode's backward at the start, e.g. a norm or sqrt at 0); "
+                             "python -m benchmark check-prior checks both gradients at init_latents and mean_latents")
         raise ValueError(f"prior {adapter.name!r}: decode returned NaN or inf rotations or translations (from latents "
                          "it was given or fitted to: check its decoder on them, e.g. python -m benchmark check-prior)")
 
