@@ -173,3 +173,33 @@ def test_check_prior_fails_rotations_that_leave_so3_during_the_fit(capsys):
     assert not ok, out
     assert "[FAIL] 100 pts / 5 fps: finite losses, determinism under a seed" in out
     assert "after 3 steps decode's rotations are not orthonormal" in out
+
+
+def test_a_plugin_whose_class_name_differs_from_its_entry_point_is_still_identified(tmp_path, monkeypatch, capsys):
+    """The units' spec records a plugged-in prior's distribution and version (a new release reruns its
+    units) looked up by the name it is registered under, not by the class's ``name``, which used to
+    find nothing (or another prior) when the two differ: a new release then reused the old numbers.
+    check-prior fails the mismatch in its declaration row."""
+    import json
+
+    from tiny_run import tiny_table1, write_motion
+
+    from benchmark.cli import main
+    from benchmark.run.registry import register, unregister
+    from benchmark.tools.conformance import check_prior
+
+    register("plugged", Pull, origin="my-priors 1.2.0")  # the class says name = "pull"
+    try:
+        tiny_table1(monkeypatch)
+        write_motion(tmp_path / "data" / "walk.npz", seed=0)
+        assert main(["run", "table1", "--profile", "smoke", "--prior", "plugged", "--jobs", "1",
+                     "--data", str(tmp_path / "data"), "--out", str(tmp_path / "out")]) == 0
+        table = json.loads((tmp_path / "out" / "table1.json").read_text())
+        info = table["prior_info"]["plugged"]
+        assert info["plugin"].startswith("my-priors 1.2.0"), info
+        capsys.readouterr()
+        assert not check_prior("plugged", steps=1)
+        out = capsys.readouterr().out
+        assert "[FAIL] declaration" in out and "name = 'pull', but the prior is registered as 'plugged'" in out
+    finally:
+        unregister("plugged")

@@ -101,6 +101,9 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
             raise ValueError("fixed windows need frames and fps")
         if not a.name or a.name == "prior":
             raise ValueError("set a registry name")
+        if a.name != name:
+            raise ValueError(f"name = {a.name!r}, but the prior is registered as {name!r} (its entry point): set "
+                             f"name = {name!r} in the adapter class (errors and logs name it by its name)")
         if a.has_encoder and not isinstance(a, MotionEncoder):
             raise ValueError("has_encoder is True but the adapter is not a priors.base.MotionEncoder (encode_motion)")
         return (f"translation={a.encodes_translation} root={a.encodes_root_orientation} heading_normalised={a.heading_normalised}"
