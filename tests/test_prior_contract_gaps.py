@@ -203,3 +203,41 @@ def test_a_plugin_whose_class_name_differs_from_its_entry_point_is_still_identif
         assert "[FAIL] declaration" in out and "name = 'pull', but the prior is registered as 'plugged'" in out
     finally:
         unregister("plugged")
+
+
+class WithConstants(Pull):
+    """A window count (integer) and a scale (float) the decoder and prior term read, declared
+    ``constant_latents``: "latent entries the decoder reads but the protocol never optimises"."""
+
+    name = "with-constants"
+    constant_latents = ("count", "scale")
+
+    def init_latents(self, batch, generator):
+        B = batch.batch_size
+        return {**super().init_latents(batch, generator), "count": torch.full((B,), batch.num_observed),
+                "scale": torch.ones(B, 1)}
+
+    def prior_term(self, latents):
+        return super().prior_term(latents) * latents["scale"][:, 0] / latents["count"]
+
+
+def test_constant_latents_are_never_optimised_and_may_be_integers(capsys, anny_body):
+    """An integer latent listed in constant_latents (the remedy docs/adding-a-prior.md gives) crashed
+    init_state ("only Tensors of floating point dtype can require gradients"), and a float one was
+    handed to the optimiser, which moved it wherever it had a gradient."""
+    from benchmark.data.degrade import degrade
+    from benchmark.protocols.completion import fit, observation_batch
+    from benchmark.protocols.fit_state import init_state
+    from benchmark.tools.conformance import toy_observation
+
+    ok, out = _check(WithConstants, capsys)
+    assert ok, out
+    a = WithConstants()
+    out_t = (torch.arange(60, dtype=torch.float64) / 30.0)[None]
+    batch = observation_batch(degrade(toy_observation(anny_body), 100, 5, seed=1), 2.0, out_t, "cpu")
+    st = init_state(a, anny_body, batch, torch.Generator().manual_seed(0), "cpu")
+    assert not st.latents["scale"].requires_grad and not st.latents["count"].requires_grad
+    assert all(p is not st.latents["scale"] for p in st.parameters())
+    st, _ = fit(a, anny_body, batch, steps=3, lr=0.03, lambda_prior=1.0, loss_vertices=200,
+                generator=torch.Generator().manual_seed(0), device="cpu")
+    assert torch.equal(st.latents["scale"], torch.ones(1, 1)) and int(st.latents["count"]) == 10

@@ -38,9 +38,16 @@ class FitState:
         return torch.sigmoid(self.shape_param) if self.bounded_shape else self.shape_param
 
     def parameters(self) -> list[torch.Tensor]:
-        params = [*self.latents.values(), self.shape_param]
+        params = [*(v for v in self.latents.values() if v.requires_grad), self.shape_param]
         params += [p for p in (self.root, self.trans, self.heading, self.offset) if p is not None]
         return params
+
+
+def as_latent(adapter: PriorAdapter, key: str, leaf: torch.Tensor) -> torch.Tensor:
+    """``leaf`` (a fresh leaf copy of the latent ``key``) requiring grad where the protocol optimises
+    it: a floating latent not among the adapter's ``constant_latents`` (those, like integer ones, are
+    read by the decoder and never optimised)."""
+    return leaf.requires_grad_(leaf.is_floating_point() and key not in adapter.constant_latents)
 
 
 def decode_grid(adapter: PriorAdapter, window_s: float, B: int, device) -> torch.Tensor:
@@ -175,7 +182,7 @@ def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Ge
     ``search_heading``: run the 8-yaw T-pose search (protocol v1); False leaves the facing at +z.
     ``latent_init``: :func:`initial_latents`."""
     B, n = batch.batch_size, batch.num_observed
-    latents = {k: v.detach().to(device).clone().requires_grad_(True)
+    latents = {k: as_latent(adapter, k, v.detach().to(device).clone())
                for k, v in initial_latents(adapter, batch, generator, latent_init).items()}
     bounded = body.name == "anny"
     default = body.default_shape(B).to(device)

@@ -272,7 +272,8 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
         st = init_state(a, body, pair, torch.Generator().manual_seed(0), "cpu")
         with torch.no_grad():
             for v in st.latents.values():  # away from the start, where a prior term may be zero for any batch
-                v.add_(0.05)
+                if v.requires_grad:  # not the constant_latents
+                    v.add_(0.05)
             rot, tr = body_parameters(st, pair.output_timestamps)
             prior = prior_values(a, st.latents)
             for i in range(2):
