@@ -241,3 +241,34 @@ def test_constant_latents_are_never_optimised_and_may_be_integers(capsys, anny_b
     st, _ = fit(a, anny_body, batch, steps=3, lr=0.03, lambda_prior=1.0, loss_vertices=200,
                 generator=torch.Generator().manual_seed(0), device="cpu")
     assert torch.equal(st.latents["scale"], torch.ones(1, 1)) and int(st.latents["count"]) == 10
+
+
+def test_check_prior_fails_a_per_frame_encoder_with_a_latent_per_sequence(capsys):
+    """A per-frame prior with encode_motion and one latent per sequence (B, 3) passed check-prior, then
+    every table1 unit failed in the limb start search, which picks every latent frame by frame."""
+    import roma
+
+    from priors.base import MotionEncoder
+
+    class Lean(MotionEncoder, Pull):
+        name = "per-frame-lean"
+
+        def init_latents(self, batch, generator):
+            return {**super().init_latents(batch, generator), "lean": torch.zeros(batch.batch_size, 3)}
+
+        def decode(self, latents, timestamps, shape=None):
+            rot = super().decode(latents, timestamps, shape).rotations
+            spine = (roma.rotvec_to_rotmat(latents["lean"])[:, None] @ rot[:, :, 3])[:, :, None]
+            return Decoded(rotations=torch.cat([rot[:, :, :3], spine, rot[:, :, 4:]], 2))
+
+        def prior_term(self, latents):
+            return super().prior_term(latents) + latents["lean"].square().sum(-1)
+
+        def encode_motion(self, rotations, trans, timestamps):
+            return {"pose": matrix_to_sixd(rotations[:, :, 1:], layout="interleaved"),
+                    "lean": rotations.new_zeros(rotations.shape[0], 3)}
+
+    ok, out = _check(Lean, capsys)
+    assert not ok, out
+    assert "[FAIL] 100 pts / 5 fps: encode_motion keys" in out
+    assert "latents ['lean'] are not per observed frame ((B, 10, ...))" in out

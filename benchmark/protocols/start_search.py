@@ -145,7 +145,8 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
         y = x.detach().view(B, K, *x.shape[1:])
         if y.shape[2] != n:
             raise ValueError(f"start search: prior {adapter.name!r} has a variable of shape {tuple(x.shape[1:])} "
-                             f"that is not per observed frame ({n} frames along dimension 1)")
+                             f"that is not per observed frame ({n} frames along dimension 1): a per-frame prior "
+                             "with encode_motion must keep every latent per observed frame (check-prior checks it)")
         idx = best.view(B, 1, n, *([1] * (y.dim() - 3))).expand(B, 1, n, *y.shape[3:])
         y = y.gather(1, idx)[:, 0].clone()
         return y.requires_grad_(True) if grad else y

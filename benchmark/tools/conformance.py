@@ -147,6 +147,12 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
                     rot, tr = body_parameters(st, t, observed=per_frame)
                     enc = a.encode_motion(rot, tr, t)
                 check_latents(a, enc, st.latents, "encode_motion", partial=not per_frame, shapes=per_frame, extra=True)
+                n = batch.num_observed
+                whole = sorted(k for k, v in st.latents.items() if v.dim() < 2 or v.shape[1] != n)
+                if per_frame and whole:  # table1's limb start search picks every latent frame by frame
+                    raise ValueError(f"latents {whole} are not per observed frame ((B, {n}, ...)): a per-frame prior "
+                                     "with encode_motion gets table1's limb start search, which chooses every latent "
+                                     "frame by frame; make each latent per observed frame along dimension 1")
                 return ", ".join(f"{k} {tuple(v.shape)}" for k, v in enc.items())
 
             rep.check(f"{label}: encode_motion keys", encoder)
