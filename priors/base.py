@@ -286,8 +286,17 @@ class PriorAdapter(torch.nn.Module, metaclass=abc.ABCMeta):
 
     @property
     def trained_network(self) -> torch.nn.Module | None:
-        """The trained network (the submodule named by ``frozen_network``), None for a prior without one."""
-        return None if self.frozen_network is None else self.get_submodule(self.frozen_network)
+        """The trained network (the submodule named by ``frozen_network``), None for a prior without one.
+        A name that is no submodule is a ValueError naming the declaration (not an AttributeError,
+        which ``nn.Module`` would report as a missing ``trained_network``)."""
+        if self.frozen_network is None:
+            return None
+        try:
+            return self.get_submodule(self.frozen_network)
+        except AttributeError as exc:
+            raise ValueError(f"prior {self.name!r} declares frozen_network = {self.frozen_network!r}, but has no "
+                             f"submodule of that name ({exc}); set it to the attribute that holds the trained "
+                             "network (e.g. self.net = ... and frozen_network = 'net'), or to None") from None
 
     def freeze_network(self, device: str | torch.device | None = None) -> None:
         """Freeze :attr:`trained_network`: no gradients on its parameters, the adapter moved to

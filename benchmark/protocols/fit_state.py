@@ -38,9 +38,16 @@ class FitState:
         return torch.sigmoid(self.shape_param) if self.bounded_shape else self.shape_param
 
     def parameters(self) -> list[torch.Tensor]:
-        params = [*self.latents.values(), self.shape_param]
+        params = [*(v for v in self.latents.values() if v.requires_grad), self.shape_param]
         params += [p for p in (self.root, self.trans, self.heading, self.offset) if p is not None]
         return params
+
+
+def as_latent(adapter: PriorAdapter, key: str, leaf: torch.Tensor) -> torch.Tensor:
+    """``leaf`` (a fresh leaf copy of the latent ``key``) requiring grad where the protocol optimises
+    it: a floating latent not among the adapter's ``constant_latents`` (those, like integer ones, are
+    read by the decoder and never optimised)."""
+    return leaf.requires_grad_(leaf.is_floating_point() and key not in adapter.constant_latents)
 
 
 def decode_grid(adapter: PriorAdapter, window_s: float, B: int, device) -> torch.Tensor:
@@ -61,20 +68,20 @@ def body_parameters(state: FitState, timestamps: torch.Tensor, observed: bool = 
     kind = a.window.kind
     shape = state.shape() if a.shape_conditioned else None
     if kind == "per-frame":
-        dec = a.decode(state.latents, state.obs_t, shape)
+        dec = _decode_output(a, a.decode(state.latents, state.obs_t, shape), state.shape_param)
         rot = dec.rotations if observed else slerp_frames(dec.rotations, state.obs_t, timestamps)
         trans = None if dec.trans is None else (dec.trans if observed else lerp_frames(dec.trans, state.obs_t, timestamps))
     elif kind == "fixed":
         grid = decode_grid(a, state.window_s, timestamps.shape[0], timestamps.device)
-        dec = a.decode(state.latents, grid, shape)
+        dec = _decode_output(a, a.decode(state.latents, grid, shape), state.shape_param)
         rot = slerp_frames(dec.rotations, grid, timestamps)
         trans = None if dec.trans is None else lerp_frames(dec.trans, grid, timestamps)
     elif kind == "continuous":
-        dec = a.decode(state.latents, timestamps, shape)
+        dec = _decode_output(a, a.decode(state.latents, timestamps, shape), state.shape_param)
         rot, trans = dec.rotations, dec.trans
     else:
         raise ValueError(f"prior {a.name!r}: unknown window kind {kind!r}")
-    _check_decoded(a, Decoded(rot, trans), timestamps)
+    _check_decoded(a, Decoded(rot, trans), timestamps, state.latents)
     return apply_free_rigid(state, rot, trans, timestamps, observed)
 
 
@@ -102,7 +109,31 @@ def apply_free_rigid(state: FitState, rot: torch.Tensor, trans: torch.Tensor | N
     return rot, trans
 
 
-def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
+def _decode_output(adapter, dec, like: torch.Tensor) -> Decoded:
+    """``dec``, what ``adapter.decode`` returned, checked before it is interpolated or skinned: a
+    :class:`Decoded` of tensors with ``like``'s (the body's) dtype and device, with a translation
+    where the prior declares ``encodes_translation``. A ValueError naming the prior, the field and
+    the fix otherwise (not torch's dtype error inside the body, or a TypeError adding None)."""
+    name = adapter.name
+    if not isinstance(dec, Decoded):
+        raise ValueError(f"prior {name!r}: decode returned {type(dec).__name__}, expected a priors.base.Decoded"
+                         "(rotations=..., trans=...)")
+    for field_name, t in (("rotations", dec.rotations), ("trans", dec.trans)):
+        if t is None and field_name == "trans":
+            continue
+        if not torch.is_tensor(t) or t.dtype != like.dtype or t.device != like.device:
+            got = f"{t.dtype} on {t.device}" if torch.is_tensor(t) else type(t).__name__
+            raise ValueError(f"prior {name!r}: decode returned {field_name} as {got}, expected {like.dtype} on "
+                             f"{like.device} (the body's; timestamps are float64: cast what you compute from them "
+                             "to the latents' dtype and device)")
+    if adapter.encodes_translation and dec.trans is None:
+        raise ValueError(f"prior {name!r} declares encodes_translation = True but decode returned trans=None: return "
+                         "the decoded translation (B, T, 3), or declare encodes_translation = False (the protocol "
+                         "then fits a free per-frame translation)")
+    return dec
+
+
+def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor, latents: dict | None = None) -> None:
     B, T = timestamps.shape
     if dec.rotations.shape[:3] != (B, T, 22) or dec.rotations.shape[-2:] != (3, 3):
         raise ValueError(
@@ -112,6 +143,11 @@ def _check_decoded(adapter, dec: Decoded, timestamps: torch.Tensor) -> None:
     if dec.trans is not None and dec.trans.shape != (B, T, 3):
         raise ValueError(f"prior {adapter.name!r}: decode returned trans {tuple(dec.trans.shape)}, expected {(B, T, 3)}")
     if not bool(torch.isfinite(dec.rotations).all()) or (dec.trans is not None and not bool(torch.isfinite(dec.trans).all())):
+        bad = sorted(k for k, v in (latents or {}).items() if v.is_floating_point() and not bool(torch.isfinite(v).all()))
+        if bad:  # the decoder was given NaN: a step's gradient was not finite
+            raise ValueError(f"prior {adapter.name!r}: its latents {bad} are NaN or inf: a fit step had a NaN or inf "
+                             "gradient (prior_term's or decode's backward at the start, e.g. a norm or sqrt at 0); "
+                             "python -m benchmark check-prior checks both gradients at init_latents and mean_latents")
         raise ValueError(f"prior {adapter.name!r}: decode returned NaN or inf rotations or translations (from latents "
                          "it was given or fitted to: check its decoder on them, e.g. python -m benchmark check-prior)")
 
@@ -146,7 +182,7 @@ def init_state(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Ge
     ``search_heading``: run the 8-yaw T-pose search (protocol v1); False leaves the facing at +z.
     ``latent_init``: :func:`initial_latents`."""
     B, n = batch.batch_size, batch.num_observed
-    latents = {k: v.detach().to(device).clone().requires_grad_(True)
+    latents = {k: as_latent(adapter, k, v.detach().to(device).clone())
                for k, v in initial_latents(adapter, batch, generator, latent_init).items()}
     bounded = body.name == "anny"
     default = body.default_shape(B).to(device)

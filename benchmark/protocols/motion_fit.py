@@ -51,7 +51,7 @@ import torch
 
 from benchmark.core.motion_posing import body_float
 from benchmark.protocols.latent_checks import prior_values
-from benchmark.protocols.fit_state import FitState, body_parameters, init_state, set_rigid
+from benchmark.protocols.fit_state import FitState, as_latent, body_parameters, init_state, set_rigid
 from benchmark.protocols.step_rules import optimise, optimise_to_plateau
 from benchmark.core.skeleton import NUM_JOINTS
 from priors.base import FitBatch, InterpolationBaseline, has_motion_encoder
@@ -283,7 +283,7 @@ def init_motion_state(adapter, body, targets: MotionTargets, generator: torch.Ge
     if latents is not None:
         if not isinstance(latents, dict) or not latents:
             raise ValueError(f"prior {adapter.name!r}: encode_motion must return a non-empty dict of latent tensors")
-        state.latents = {k: v.detach().to(device).clone().requires_grad_(v.is_floating_point()) for k, v in latents.items()}
+        state.latents = {k: as_latent(adapter, k, v.detach().to(device).clone()) for k, v in latents.items()}
     set_rigid_from_observation(state, targets)
     return state
 

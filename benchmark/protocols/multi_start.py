@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import torch
 
-from benchmark.protocols.fit_state import FitState
+from benchmark.protocols.fit_state import FitState, as_latent
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,8 @@ def repeat_state(state: FitState, k: int) -> FitState:
     """Every variable of ``state`` repeated ``k`` times per sequence, hypothesis-major like
     :func:`repeat_batch` (b0k0, b0k1, ...), as fresh leaves."""
     rep = lambda x: None if x is None else x.detach().repeat_interleave(k, dim=0).clone().requires_grad_(True)  # noqa: E731
-    return FitState(adapter=state.adapter, latents={n: rep(v) for n, v in state.latents.items()},
+    latents = {n: as_latent(state.adapter, n, v.detach().repeat_interleave(k, dim=0).clone()) for n, v in state.latents.items()}
+    return FitState(adapter=state.adapter, latents=latents,
                     shape_param=rep(state.shape_param), obs_t=state.obs_t.repeat_interleave(k, dim=0),
                     window_s=state.window_s, root=rep(state.root), trans=rep(state.trans), heading=rep(state.heading),
                     offset=rep(state.offset), bounded_shape=state.bounded_shape)
@@ -69,6 +70,8 @@ def vary_copies(state: FitState, start: FitState, rule: MultiStart, generator: t
             view[:, 1] = own.detach().to(v)
     if K > 2:
         for v in state.latents.values():
+            if not v.requires_grad:  # constant_latents (a window duration) are not the start's to vary
+                continue
             view = v.view(-1, K, *v.shape[1:])
             noise = torch.randn((view.shape[0], K - 2, *v.shape[1:]), generator=generator, dtype=v.dtype)
             view[:, 2:] += rule.noise * noise.to(v.device)
@@ -78,16 +81,16 @@ def select_copies(state: FitState, pick: torch.Tensor, like: FitState) -> FitSta
     """The copies ``pick`` ((B,) flat indices, one per sequence) of a state of several copies per
     sequence (the facing search's hypotheses, :func:`vary_copies`' starts) as a fresh leaf state
     shaped like ``like``."""
-    def take(x, ref):
+    def take(x, ref, grad=True):
         if x is None:
             return None
         y = x.detach()[pick].clone()
         if ref is not None and y.shape != ref.shape:
             raise ValueError(f"a variable of shape {tuple(x.shape)} is not batch-first "
                              f"(expected {tuple(ref.shape)} after selection)")
-        return y.requires_grad_(True)
+        return y.requires_grad_(True) if grad else y
 
-    latents = {k: take(v, like.latents.get(k)) for k, v in state.latents.items()}
+    latents = {k: as_latent(like.adapter, k, take(v, like.latents.get(k), grad=False)) for k, v in state.latents.items()}
     return FitState(adapter=like.adapter, latents=latents, shape_param=take(state.shape_param, like.shape_param),
                     obs_t=like.obs_t, window_s=like.window_s, root=take(state.root, like.root),
                     trans=take(state.trans, like.trans), heading=take(state.heading, like.heading),

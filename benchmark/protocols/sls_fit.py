@@ -183,7 +183,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
     terms_used = active_terms(adapter, obs, objective)
     weights = AdaptiveWeights(terms_used, B, alpha=float(ad.get("alpha", 1.5)), smoothing=float(ad.get("smoothing", 0.5)),
                               every=int(ad.get("every", 10)))
-    latents = list(state.latents.values())
+    latents = [v for v in state.latents.values() if v.requires_grad]  # not the constant_latents
     # the observed points never move: their search structures are built once (same values as chamfer_loss)
     dense = None if pts is None else StaticChamfer(pts.flatten(0, 1))
 

@@ -18,9 +18,9 @@ import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.protocols.latent_checks import check_latents, prior_values
-from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, decode_grid,
-                                              frame_chamfer, init_state, repeat_batch, rigid_parameters, set_rigid,
-                                              subset_batch)
+from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, as_latent, body_parameters,
+                                              decode_grid, frame_chamfer, init_state, repeat_batch, rigid_parameters,
+                                              set_rigid, subset_batch)
 from benchmark.protocols.multi_start import repeat_state
 from benchmark.protocols.step_rules import optimise
 from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encoder
@@ -118,7 +118,7 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
     def rep(x):
         return None if x is None else x.detach().repeat_interleave(K, dim=0).clone().requires_grad_(True)
 
-    latents = {k: torch.stack([h[k] for h in hyps], 1).flatten(0, 1).clone().requires_grad_(True)
+    latents = {k: as_latent(adapter, k, torch.stack([h[k] for h in hyps], 1).flatten(0, 1).clone())
                for k in state.latents}
     hyp = FitState(adapter=adapter, latents=latents, shape_param=rep(state.shape_param), obs_t=small.timestamps,
                    window_s=state.window_s, root=rep(state.root), trans=rep(state.trans), heading=rep(state.heading),
@@ -139,15 +139,17 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
         scores = frame_terms().view(B, K, n)
     best = scores.argmin(1)  # (B, n)
 
-    def per_frame(x):
+    def per_frame(x, grad=True):
         if x is None:
             return None
         y = x.detach().view(B, K, *x.shape[1:])
         if y.shape[2] != n:
             raise ValueError(f"start search: prior {adapter.name!r} has a variable of shape {tuple(x.shape[1:])} "
-                             f"that is not per observed frame ({n} frames along dimension 1)")
+                             f"that is not per observed frame ({n} frames along dimension 1): a per-frame prior "
+                             "with encode_motion must keep every latent per observed frame (check-prior checks it)")
         idx = best.view(B, 1, n, *([1] * (y.dim() - 3))).expand(B, 1, n, *y.shape[3:])
-        return y.gather(1, idx)[:, 0].clone().requires_grad_(True)
+        y = y.gather(1, idx)[:, 0].clone()
+        return y.requires_grad_(True) if grad else y
 
     whole = scores.mean(2).argmin(1)  # (B,)
 
@@ -156,7 +158,8 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
             return None
         return x.detach().view(B, K, *x.shape[1:])[torch.arange(B), whole].clone().requires_grad_(True)
 
-    out = FitState(adapter=adapter, latents={k: per_frame(v) for k, v in hyp.latents.items()},
+    latents = {k: as_latent(adapter, k, per_frame(v, grad=False)) for k, v in hyp.latents.items()}
+    out = FitState(adapter=adapter, latents=latents,
                    shape_param=per_sequence(hyp.shape_param), obs_t=state.obs_t, window_s=state.window_s,
                    root=per_frame(hyp.root), trans=per_frame(hyp.trans), heading=per_sequence(hyp.heading),
                    offset=per_sequence(hyp.offset), bounded_shape=state.bounded_shape)
@@ -224,7 +227,8 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
 def _leaf_copy(state: FitState, **changes) -> FitState:
     """``state`` with every variable a fresh leaf copy that requires grad, then ``changes`` applied."""
     leaf = lambda x: None if x is None else x.detach().clone().requires_grad_(True)  # noqa: E731
-    fields = {"latents": {k: leaf(v) for k, v in state.latents.items()}, "shape_param": leaf(state.shape_param),
+    fields = {"latents": {k: as_latent(state.adapter, k, v.detach().clone()) for k, v in state.latents.items()},
+              "shape_param": leaf(state.shape_param),
               **{name: leaf(getattr(state, name)) for name in ("root", "trans", "heading", "offset")}}
     return dataclasses.replace(state, **{**fields, **changes})
 

@@ -63,11 +63,13 @@ def with_body(data_hash: str, identity: dict | None) -> str:
     return hashlib.sha256(f"{data_hash};body:{json.dumps(identity, sort_keys=True)}".encode()).hexdigest()
 
 
-def prior_identity(adapter, size: str, weights: str | None) -> dict:
+def prior_identity(adapter, size: str, weights: str | None, name: str | None = None) -> dict:
     """What identifies a prior's numbers in its work units' spec hash: its size, the weights given,
     the content of every weights file it read (embedded or given: new weights under the same file
     name invalidate stored results) and, from revision 2 on, its adapter's revision
-    (:attr:`priors.base.PriorAdapter.adapter_revision`: a change of its code that moves its numbers)."""
+    (:attr:`priors.base.PriorAdapter.adapter_revision`: a change of its code that moves its numbers).
+    ``name``: the registry name it was built under (its entry point; default ``adapter.name``), which
+    finds the distribution of a plugged-in prior."""
     from benchmark.run.registry import weights_content_sha256
 
     info = {"size": size, "weights": weights, "weights_sha256": _sha_file(weights),
@@ -77,7 +79,7 @@ def prior_identity(adapter, size: str, weights: str | None) -> dict:
     revision = int(getattr(adapter, "adapter_revision", 1))
     if revision != 1:
         info["adapter_revision"] = revision
-    plugin = plugin_origin(adapter.name)
+    plugin = plugin_origin(name or adapter.name)
     if plugin is not None:  # a prior from another package: its distribution and version (a new version reruns it)
         info["plugin"] = plugin
     return info
@@ -185,7 +187,7 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     for name in priors:
         w = weights.get(name)
         adapters[name] = make_adapter(name, size=size, weights=w, device=device)
-        prior_info[name] = prior_identity(adapters[name], size, w)
+        prior_info[name] = prior_identity(adapters[name], size, w, name)
         if prior_info[name].get("untrained"):
             log.warning("%s read no weights file: its row measures an untrained network (the table marks it)", name)
 

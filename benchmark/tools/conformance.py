@@ -101,6 +101,9 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
             raise ValueError("fixed windows need frames and fps")
         if not a.name or a.name == "prior":
             raise ValueError("set a registry name")
+        if a.name != name:
+            raise ValueError(f"name = {a.name!r}, but the prior is registered as {name!r} (its entry point): set "
+                             f"name = {name!r} in the adapter class (errors and logs name it by its name)")
         if a.has_encoder and not isinstance(a, MotionEncoder):
             raise ValueError("has_encoder is True but the adapter is not a priors.base.MotionEncoder (encode_motion)")
         return (f"translation={a.encodes_translation} root={a.encodes_root_orientation} heading_normalised={a.heading_normalised}"
@@ -144,6 +147,12 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
                     rot, tr = body_parameters(st, t, observed=per_frame)
                     enc = a.encode_motion(rot, tr, t)
                 check_latents(a, enc, st.latents, "encode_motion", partial=not per_frame, shapes=per_frame, extra=True)
+                n = batch.num_observed
+                whole = sorted(k for k, v in st.latents.items() if v.dim() < 2 or v.shape[1] != n)
+                if per_frame and whole:  # table1's limb start search picks every latent frame by frame
+                    raise ValueError(f"latents {whole} are not per observed frame ((B, {n}, ...)): a per-frame prior "
+                                     "with encode_motion gets table1's limb start search, which chooses every latent "
+                                     "frame by frame; make each latent per observed frame along dimension 1")
                 return ", ".join(f"{k} {tuple(v.shape)}" for k, v in enc.items())
 
             rep.check(f"{label}: encode_motion keys", encoder)
@@ -160,8 +169,8 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
 
         rep.check(f"{label}: decode at output timestamps", decode_shapes)
 
-        def gradients():
-            st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu")
+        def gradients(latent_init="sample"):
+            st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu", latent_init=latent_init)
             rot, tr = body_parameters(st, batch.timestamps, observed=True)
             verts = body.skin(body.prepare(st.shape()), rot, tr).vertices
             from benchmark.metrics.chamfer import chamfer_loss
@@ -170,17 +179,37 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
             data = chamfer_loss(verts.flatten(0, 1), batch.points.flatten(0, 1), b_lengths=batch.lengths.flatten()).sum()
             data.backward()
             constant = set(a.constant_latents)  # e.g. the window length a decoder reads
-            dead = [k for k, v in st.latents.items() if k not in constant
-                    and (v.grad is None or not torch.isfinite(v.grad).all() or v.grad.abs().sum() == 0)]
-            if dead:
+            free = {k: v for k, v in st.latents.items() if k not in constant}
+            where = "init_latents" if latent_init == "sample" else "mean_latents (table1's start)"
+            bad = [k for k, v in free.items() if v.grad is not None and not torch.isfinite(v.grad).all()]
+            if bad:
+                raise ValueError(f"the data term's gradient at {where} is NaN or inf for latents {bad}: decode's "
+                                 "backward is not finite there (e.g. a norm or sqrt at 0); the fit would turn them NaN")
+            dead = [k for k, v in free.items() if v.grad is None or v.grad.abs().sum() == 0]
+            if dead and latent_init == "sample":  # (a mean start may be a stationary point)
                 raise ValueError(f"the decoded motion does not depend on latents {dead}: no finite non-zero gradient "
                                  "of the data term reaches them (does decode() read them, without detaching?)")
+            for v in free.values():
+                v.grad = None
             prior = prior_values(a, st.latents).sum()
             if not torch.isfinite(prior):
                 raise ValueError(f"prior term is {prior.item()}")
-            return "the data term's gradient reaches every latent"
+            if prior.requires_grad:
+                prior.backward()
+            grads = [v.grad for v in free.values() if v.grad is not None]
+            if any(not torch.isfinite(g).all() for g in grads):
+                raise ValueError(f"prior_term's gradient at {where} is NaN or inf (e.g. a norm or sqrt at 0, where "
+                                 "the start is): the fit's first step would turn the latents NaN")
+            if prior.item() != 0.0 and not grads:
+                raise ValueError(f"prior_term is {prior.item():.4g} but no gradient of it reaches the latents (computed "
+                                 "from detached latents, .item() or numpy?): the fit would add a constant, i.e. fit "
+                                 "with no prior at all")
+            return ("the data term's and prior term's gradients reach every latent, finite" if latent_init == "sample"
+                    else "finite gradients of the data and prior terms")
 
         rep.check(f"{label}: gradients reach the latents", gradients)
+        if a.mean_latents(batch) is not None:
+            rep.check(f"{label}: gradients at mean_latents", lambda: gradients("mean"))
 
         def decode_depends_on_latents():
             st = init_state(a, body, batch, torch.Generator().manual_seed(0), "cpu")
@@ -212,6 +241,10 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
                     if not math.isfinite(h["data_mm"]) or not math.isfinite(h["prior"]):
                         raise ValueError(f"non-finite loss {h}")
                 rot, _ = body_parameters(st, batch.output_timestamps)
+                orth = (rot.transpose(-1, -2) @ rot - torch.eye(3)).abs().max()
+                if orth > 1e-4:  # a decoder that is orthonormal at its start only (raw matrices as latents)
+                    raise ValueError(f"after {steps} steps decode's rotations are not orthonormal (max error "
+                                     f"{orth:.2e}): decode through a rotation map, e.g. sixd_to_matrix")
                 runs.append((rot.detach(), info["history"][-1]["data_mm"]))
             diff = (runs[0][0] - runs[1][0]).abs().max().item()
             if diff > 1e-5:
@@ -245,7 +278,8 @@ def check_prior(name: str, size: str = "embedded", weights: str | None = None, s
         st = init_state(a, body, pair, torch.Generator().manual_seed(0), "cpu")
         with torch.no_grad():
             for v in st.latents.values():  # away from the start, where a prior term may be zero for any batch
-                v.add_(0.05)
+                if v.requires_grad:  # not the constant_latents
+                    v.add_(0.05)
             rot, tr = body_parameters(st, pair.output_timestamps)
             prior = prior_values(a, st.latents)
             for i in range(2):
