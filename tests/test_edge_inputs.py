@@ -1,0 +1,80 @@
+"""Edge inputs of the commands other than ``run`` (an audit as a user makes them): each fails with
+exit code 2 and one line naming the file, the field and the fix, or works where the docs say it does.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmark.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def cli(argv) -> tuple[int, str]:
+    """(exit code, stderr) of ``python -m benchmark ARGV``, in this process."""
+    err, buf = sys.stderr, io.StringIO()
+    sys.stderr = buf
+    try:
+        try:
+            rc = main([str(a) for a in argv])
+        except SystemExit as exc:  # argparse's own usage errors
+            rc = exc.code
+    finally:
+        sys.stderr = err
+    return rc, buf.getvalue().strip()
+
+
+def one_error_line(message: str) -> str:
+    lines = [line for line in message.splitlines() if not line.startswith(("INFO ", "WARNING "))]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in message, message
+    return lines[0]
+
+
+# ----------------------------------------------------------------------------------------- report
+def _run_folder(tmp: Path, edit) -> Path:
+    """A run folder holding the committed smoke table1 JSON, edited by ``edit(table)``."""
+    table = json.loads((ROOT / "results" / "table1.smoke.json").read_text())
+    edit(table)
+    run = tmp / "run"
+    run.mkdir()
+    (run / "table1.json").write_text(json.dumps(table))
+    return run
+
+
+def _set_metric(t, value):
+    t["rows"][0]["cells"][0]["mpjpe_mm"] = value
+
+
+@pytest.mark.parametrize("edit, expect", [
+    (lambda t: t.update(rows="x"), "field 'rows' must be a list"),
+    (lambda t: t["rows"][0].pop("cells"), "rows[0] must be an object with 'prior' (a string) and 'cells' (a list)"),
+    (lambda t: _set_metric(t, "abc"), "prior 'no-prior', cell 5 fps / 100 pts: metric 'mpjpe_mm' is 'abc', not a finite number"),
+    (lambda t: t.update(metrics=[]), "field 'metrics' is empty"),
+    (lambda t: t.update(format_version=99), "field 'format_version' is 99"),
+    (lambda t: t["rows"][0]["cells"][0].update(mpjpe_mm_ci95="wide"), "mpjpe_mm_ci95 is 'wide', not [low, high]"),
+], ids=["rows-not-a-list", "row-without-cells", "metric-a-string", "no-metrics", "future-format", "bad-interval"])
+def test_report_names_the_damaged_table_file_and_field(tmp_path, edit, expect):
+    """A table JSON edited by hand or written by another tool: the report said ``error: 'cells'``,
+    ``TypeError: string indices ...``, ``Unknown format code 'f' ...`` or ``IndexError`` (no file, no
+    field), or rendered a future format version without a word; now the file, the field and the fix."""
+    run = _run_folder(tmp_path, edit)
+    rc, message = cli(["report", run, "--sequences", "0", "--workers", "1"])
+    line = one_error_line(message)
+    assert rc == 2
+    assert str(run / "table1.json") in line and expect in line, line
+    assert not (run / "report" / "index.html").exists()
+
+
+def test_report_of_an_intact_table_still_works(tmp_path):
+    run = _run_folder(tmp_path, lambda t: None)
+    rc, message = cli(["report", run, "--sequences", "0", "--workers", "1"])
+    assert rc == 0, message
+    assert (run / "report" / "index.html").is_file()
