@@ -78,3 +78,28 @@ def test_report_of_an_intact_table_still_works(tmp_path):
     rc, message = cli(["report", run, "--sequences", "0", "--workers", "1"])
     assert rc == 0, message
     assert (run / "report" / "index.html").is_file()
+
+
+# ----------------------------------------------------------------------------------- data convert
+def _amass(path: Path, **change) -> Path:
+    arrays = dict(poses=np.zeros((120, 156)), trans=np.zeros((120, 3)), mocap_framerate=np.array(60.0))
+    arrays.update(change)
+    arrays = {k: v for k, v in arrays.items() if v is not None}
+    np.savez(path, **arrays)
+    return path
+
+
+@pytest.mark.parametrize("change, key", [
+    (dict(poses=np.full((120, 156), "a")), "poses"),
+    (dict(trans=np.full((120, 3), "a")), "trans"),
+    (dict(poses=None, root_orient=np.zeros((120, 3)), pose_body=np.full((120, 63), "x")), "pose_body"),
+    (dict(poses=np.zeros((120, 156), dtype=np.complex64)), "poses"),
+], ids=["poses-strings", "trans-strings", "pose_body-strings", "poses-complex"])
+def test_convert_amass_arrays_that_are_not_numbers(tmp_path, change, key):
+    """AMASS arrays of strings failed as ``error: could not convert string to float: np.str_('a')``
+    (no file, no key); complex poses lost their imaginary part with only numpy's ComplexWarning."""
+    src = _amass(tmp_path / "seq_poses.npz", **change)
+    rc, message = cli(["data", "convert", src, "--out", tmp_path / "out.npz"])
+    line = one_error_line(message)
+    assert rc == 2 and f"{src}: key {key!r} holds" in line and "not real numbers" in line, line
+    assert not (tmp_path / "out.npz").exists()
