@@ -103,3 +103,34 @@ def test_convert_amass_arrays_that_are_not_numbers(tmp_path, change, key):
     line = one_error_line(message)
     assert rc == 2 and f"{src}: key {key!r} holds" in line and "not real numbers" in line, line
     assert not (tmp_path / "out.npz").exists()
+
+
+# --------------------------------------------------------------------------------------- complete
+def _motion(path: Path, frames: int = 120, fps: float = 30.0) -> Path:
+    t = np.arange(frames) / fps
+    poses = np.zeros((frames, 22, 3), np.float32)
+    poses[:, 16, 2] = 0.5 * np.sin(3 * t)
+    trans = np.zeros((frames, 3), np.float32)
+    trans[:, 0] = 0.5 * t
+    np.savez(path, poses=poses, trans=trans, timestamps=t, fps=np.array(fps))
+    return path
+
+
+@pytest.mark.parametrize("device, expect", [
+    ("gpu", "--device 'gpu': not a device name; use cpu, cuda or cuda:N"),
+    ("tpu:0", "--device 'tpu:0': not a device name"),
+    ("cuda", "--device cuda: no CUDA device is available on this machine"),
+])
+def test_complete_checks_device_first(tmp_path, device, expect):
+    """complete's --device went to torch unchecked, after the body and the input had loaded:
+    ``RuntimeError: Expected one of cpu, cuda, ipu, ...`` or ``AssertionError: Torch not compiled
+    with CUDA enabled``."""
+    import torch
+
+    if device == "cuda" and torch.cuda.is_available():
+        pytest.skip("CUDA is available here")
+    rc, message = cli(["complete", _motion(tmp_path / "m.npz"), "--prior", "no-prior", "--out", tmp_path / "o",
+                       "--device", device, "--steps", "1"])
+    line = one_error_line(message)
+    assert rc == 2 and expect in line, line
+    assert not (tmp_path / "o").exists()
