@@ -134,3 +134,35 @@ def test_complete_checks_device_first(tmp_path, device, expect):
     line = one_error_line(message)
     assert rc == 2 and expect in line, line
     assert not (tmp_path / "o").exists()
+
+
+def test_complete_a_four_second_30fps_motion(tmp_path):
+    """A 120-frame 30 fps motion lasts 4.0 s (Motion.duration), so complete's default window was 4 s,
+    but its 50 fps capture needs frames up to 3.98 s and the motion ends at 3.967 s: it failed with
+    'motion 0 spans 3.9667 s ... pass a shorter duration or a longer motion' (no file, no option).
+    The window is now what the capture can sample: 199 frames at 50 fps, 3.98 s."""
+    out = tmp_path / "o"
+    rc, message = cli(["complete", _motion(tmp_path / "m.npz"), "--prior", "no-prior", "--out", out, "--steps", "1",
+                       "--no-preview", "--device", "cpu"])
+    assert rc == 0, message
+    motion = np.load(out / "motion.npz")
+    assert motion["poses"].shape == (119, 22, 3)  # round(3.98 s x 30 fps)
+
+
+def test_run_data_skips_a_motion_its_capture_cannot_sample(tmp_path, caplog):
+    """``run table1 --data``: a 120-frame 30 fps motion (4.0 s) passed the 'shorter than the window'
+    check, then every work unit failed on it in the 50 fps capture; it is skipped with the warning
+    (and a folder of only such motions is an error naming the rate and the fix)."""
+    from benchmark.protocols.completion_unit import load_motions
+    from benchmark.run.catalog import load_table_spec
+
+    spec = load_table_spec("table1")
+    data = tmp_path / "data"
+    data.mkdir()
+    _motion(data / "exactly4s.npz", frames=120)
+    with pytest.raises(ValueError, match=r"every motion is shorter than the 4\.0 s window this table needs at 50 fps "
+                                         r".*exactly4s\.npz, lasts 4\.00 s: 120 frames over 3\.967 s\).*up to 3\.980 s"):
+        load_motions(spec, str(data), None)
+    _motion(data / "long.npz", frames=121)
+    assert list(load_motions(spec, str(data), None)) == ["long.npz"]
+    assert "exactly4s.npz" in caplog.text
