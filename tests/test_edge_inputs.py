@@ -166,3 +166,13 @@ def test_run_data_skips_a_motion_its_capture_cannot_sample(tmp_path, caplog):
     _motion(data / "long.npz", frames=121)
     assert list(load_motions(spec, str(data), None)) == ["long.npz"]
     assert "exactly4s.npz" in caplog.text
+
+
+def test_data_without_its_subcommand_says_what_it_takes(tmp_path):
+    """``python -m benchmark data`` printed the top-level help, which does not list data's commands,
+    and exited 2 without a word on what was wrong."""
+    rc, message = cli(["data"])
+    line = one_error_line(message)
+    assert rc == 2 and "data: give a DATA_COMMAND: convert, build, make-scans" in line, line
+    rc, message = cli(["data", "convert", tmp_path / "none.npz", "--out", tmp_path / "o.npz"])  # still dispatched
+    assert rc == 2 and "none.npz: no such file" in message, message
