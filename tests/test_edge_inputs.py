@@ -176,3 +176,14 @@ def test_data_without_its_subcommand_says_what_it_takes(tmp_path):
     assert rc == 2 and "data: give a DATA_COMMAND: convert, build, make-scans" in line, line
     rc, message = cli(["data", "convert", tmp_path / "none.npz", "--out", tmp_path / "o.npz"])  # still dispatched
     assert rc == 2 and "none.npz: no such file" in message, message
+
+
+# ------------------------------------------------------------------------------------------ priors
+@pytest.mark.parametrize("prior", ["hmvae", "hmvae-trajectory"])
+def test_a_mistyped_hmvae_weights_path_is_named_as_such(tmp_path, prior):
+    """``--weights`` naming no file: HM-VAE said 'embedded HM-VAE weights not found: [...]. Train them
+    with ...' (the fix for missing embedded weights, not for a mistyped path), unlike the other priors."""
+    given = tmp_path / "hmvea.pt"
+    rc, message = cli(["describe", prior, "--weights", given])
+    line = one_error_line(message)
+    assert rc == 2 and f"{prior} weights {given}: no such file; check the path given with --weights" in line, line
