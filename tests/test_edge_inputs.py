@@ -187,3 +187,19 @@ def test_a_mistyped_hmvae_weights_path_is_named_as_such(tmp_path, prior):
     rc, message = cli(["describe", prior, "--weights", given])
     line = one_error_line(message)
     assert rc == 2 and f"{prior} weights {given}: no such file; check the path given with --weights" in line, line
+
+
+def test_convert_a_bvh_of_another_skeleton_names_a_fix_the_command_line_has(tmp_path):
+    """A BVH whose joints are not the CMU skeleton's: the error ended 'pass a joint_map for this
+    skeleton', which no command takes; it now says which names the commands read and the Python way."""
+    from benchmark.loaders.bvh_format import cmu_skeleton, write_bvh
+
+    sk = cmu_skeleton()
+    frames = 10
+    rot = np.tile(np.eye(3), (frames, len(sk.names), 1, 1))
+    src = write_bvh(tmp_path / "take.bvh", sk, rot, np.tile([0.0, 17.0, 0.0], (frames, 1)), frame_time=1 / 120)
+    src.write_text(src.read_text().replace("LeftUpLeg", "LeftThigh"))
+    rc, message = cli(["data", "convert", src, "--out", tmp_path / "take.npz"])
+    line = one_error_line(message)
+    assert rc == 2 and "maps to BVH joint 'LeftUpLeg', which the file lacks" in line, line
+    assert "name the joints as the CMU skeleton does" in line and "data convert" in line and "joint_map=" in line
