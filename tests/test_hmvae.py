@@ -345,8 +345,11 @@ def test_tiny_training_runs_decrease_loss_and_load(tmp_path):
         HMVAEPrior.train_embedded(out_dir=tmp_path)
 
 
-def test_missing_embedded_weights_error(tmp_path):
-    with pytest.raises(FileNotFoundError, match="train hmvae"):
-        HMVAEPrior(size="embedded", weights=str(tmp_path / "nothing.pt"))
+def test_missing_embedded_weights_error(tmp_path, monkeypatch):
+    with pytest.raises(FileNotFoundError, match="nothing.pt: no such file; check the path given with --weights"):
+        HMVAEPrior(size="embedded", weights=str(tmp_path / "nothing.pt"))  # a path the user gave: mistyped
+    monkeypatch.setattr(HMVAEPrior, "default_weights", tmp_path / "hmvae.pt")
+    with pytest.raises(FileNotFoundError, match="train hmvae"):  # the embedded weights missing: train them
+        HMVAEPrior(size="embedded")
     with pytest.raises(ValueError, match="unknown size"):
         HMVAEPrior(size="huge")

@@ -7,8 +7,10 @@ from benchmark.commands.common import HelpFormatter
 
 
 def _cmd_complete(args) -> int:
+    from benchmark.commands.common import resolve_device
     from benchmark.tools.complete import run_complete
 
+    args.device = resolve_device(args.device)  # a wrong --device fails before anything loads, not in torch
     return 0 if run_complete(args) else 1
 
 
@@ -29,7 +31,7 @@ def add_command(sub) -> None:
     p.add_argument("--no-preview", action="store_true", help="skip the animated preview")
     p.add_argument("--profile", default=None, help="steps and loss vertices from this profile (default: quick on CPU)")
     p.add_argument("--steps", type=at.positive_int, default=None, help="override the profile's step cap (table1 v6: each fit stops at its plateau)")
-    p.add_argument("--device", default=None)
+    p.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: cuda when available)")
     p.add_argument("--seed", type=at.seed, default=0)
     p.add_argument("--facing", choices=["observation", "search", "heading8"], default="observation",
                    help="how the fit finds the facing direction: 'observation' (table1 protocol v2) finds it on the "

@@ -54,6 +54,12 @@ def add_command(sub) -> None:
 
     p = sub.add_parser("data", help="motion data: convert files, build the synthetic splits")
     dsub = p.add_subparsers(dest="data_command", metavar="DATA_COMMAND")
+
+    def no_data_command(args) -> int:  # `python -m benchmark data` alone: say what it takes
+        raise ValueError(f"data: give a DATA_COMMAND: {', '.join(dsub.choices)} "
+                         "(e.g. python -m benchmark data convert motion.bvh --out motion.npz; --help on each)")
+
+    p.set_defaults(func=no_data_command)
     c = dsub.add_parser("convert", help="AMASS .npz or BVH -> the harness's motion .npz",
                         formatter_class=HelpFormatter)
     c.add_argument("input")

@@ -13,9 +13,20 @@ from benchmark.core.safe_loading import npz_read_error
 log = logging.getLogger(__name__)
 
 
-def load_motions(data: str | None, min_duration: float, body=None) -> dict:
+def too_short(motion, min_duration: float, sample_fps: float | None = None) -> bool:
+    """Whether ``motion`` cannot serve a window of ``min_duration`` s: it lasts less (its frames and one
+    period), or, sampled at ``sample_fps`` from its first frame (a table's capture rate), the window's
+    last instant ``(round(min_duration * sample_fps) - 1) / sample_fps`` lies past its last frame (a
+    120-frame 30 fps motion lasts 4.0 s, but a 4 s window at 50 fps needs it up to 3.98 s, not 3.967)."""
+    if motion.duration + 1e-6 < min_duration:
+        return True
+    return sample_fps is not None and (round(min_duration * sample_fps) - 1) / sample_fps > motion.span + 1e-6
+
+
+def load_motions(data: str | None, min_duration: float, body=None, sample_fps: float | None = None) -> dict:
     """Test motions by id: the synthetic test split by default, or a folder of motion files (each
-    checked by its loader: :mod:`benchmark.core.plausibility`)."""
+    checked by its loader: :mod:`benchmark.core.plausibility`). Motions too short for the window
+    (:func:`too_short`; ``sample_fps``: the rate the table samples them at) are skipped with a warning."""
     files_by_id = {}
     if data is None:
         from benchmark.synthetic.splits import build_split
@@ -61,15 +72,20 @@ def load_motions(data: str | None, min_duration: float, body=None) -> dict:
                                     f"(e.g. {shape_files[0]}); give the folder of the *_poses.npz / *_stageii.npz sequences")
     if body is not None:
         by_id = {k: shape_for_body(m, body, files_by_id.get(k)) for k, m in by_id.items()}
-    short = [k for k, m in by_id.items() if m.duration + 1e-6 < min_duration]
+    short = [k for k, m in by_id.items() if too_short(m, min_duration, sample_fps)]
     if short and len(short) == len(by_id):
         longest = max(short, key=lambda k: by_id[k].duration)
         where, needs, fix = (f"--data {data}", "this table needs", f"give motions of at least {min_duration:.1f} s") \
             if data is not None else ("the synthetic test split", "asked for",
                                       "ask for a shorter window (the command's --window, where it has one)")
-        raise ValueError(f"{where}: every motion is shorter than the {min_duration:.1f} s window {needs} "
+        rate = "" if sample_fps is None else f" at {sample_fps:g} fps"
+        if sample_fps is not None and data is not None:
+            last = (round(min_duration * sample_fps) - 1) / sample_fps
+            fix += f" with frames up to {last:.3f} s after their first (the window's last instant at {sample_fps:g} fps)"
+        raise ValueError(f"{where}: every motion is shorter than the {min_duration:.1f} s window {needs}{rate} "
                          f"({len(short)} of {len(by_id)}; the longest, {files_by_id.get(longest, longest)}, "
-                         f"lasts {by_id[longest].duration:.2f} s): {fix}")
+                         f"lasts {by_id[longest].duration:.2f} s: {by_id[longest].num_frames} frames over "
+                         f"{by_id[longest].span:.3f} s): {fix}")
     if short:
         log.warning("skipping %d motions shorter than the %.1f s window: %s", len(short), min_duration, short[:5])
     return {k: m for k, m in by_id.items() if k not in short}

@@ -131,6 +131,11 @@ def load_amass(
             raise KeyError(f"{path}: missing key {key!r} (keys present: {sorted(data)})")
         return data[key]
 
+    for key in ("poses", "root_orient", "pose_body", "trans"):
+        if key in data and data[key].dtype.kind not in "iuf":  # strings, objects, complex numbers
+            raise ValueError(f"{path}: key {key!r} holds {data[key].dtype} values, not real numbers (radians for poses, "
+                             "metres for trans); write the numbers (e.g. np.asarray(values, dtype=np.float32))")
+
     if "poses" in data:
         poses = np.asarray(data["poses"], dtype=np.float64)
         if poses.ndim != 2 or poses.shape[1] not in _BODY_BY_WIDTH:

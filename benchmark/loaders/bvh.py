@@ -171,7 +171,9 @@ def retarget_to_smpl(
         if name not in skeleton.names:
             raise ValueError(
                 f"{where}: SMPL joint {smpl!r} maps to BVH joint {name!r}, which the file lacks "
-                f"(joints: {', '.join(skeleton.names)}); pass a joint_map for this skeleton"
+                f"(joints: {', '.join(skeleton.names)}). Fix: name the joints as the CMU skeleton does (Hips, "
+                "LeftUpLeg, ...: benchmark.loaders.bvh.CMU_JOINT_MAP), which `data convert` and `complete` read; "
+                "or, from Python, load_bvh(path, joint_map=...) with this skeleton's joints for each SMPL joint"
             )
         return skeleton.names.index(name)
 

@@ -457,7 +457,7 @@ def load_motions(spec: dict, data: str | None, body) -> dict:
         return load_scan_sequences(spec, data)
     from benchmark.data.table_data import load_motions as load_motion_files
 
-    return load_motion_files(data, float(spec["data"]["window_s"]), body)
+    return load_motion_files(data, float(spec["data"]["window_s"]), body, sample_fps=float(spec["data"]["capture_fps"]))
 
 
 def run_unit(unit, spec: dict, profile: dict, adapter, body, source: CompletionData, device) -> dict:

@@ -69,6 +69,31 @@ def is_table_file(path: Path) -> bool:
         return False
 
 
+def check_table_file(table: dict, path: Path) -> None:
+    """Refuse a table JSON the report cannot show, naming the file, the field and the fix: the checks
+    of ``compare`` (fields, format version, rows and cells), at least one metric, and every metric
+    value (and its ``_std``) a finite number or null, its ``_ci95`` null or two numbers."""
+    from benchmark.run.writers import cell_label
+    from benchmark.tools.compare import _value, check_table
+
+    check_table(table, str(path))
+    if not table["metrics"]:
+        raise ValueError(f"{path}: field 'metrics' is empty: a table names the metrics its cells hold; the file "
+                         "was edited or written by another tool: rerun the table")
+    for row in table["rows"]:
+        for cell in row["cells"]:
+            coords = {k: cell.get(k) for k in table["grid"]}
+            where = f"{path}: prior {row['prior']!r}, cell {cell_label(coords, list(coords)) if coords else '(no grid)'}"
+            for m in table["metrics"]:
+                for name in (m["name"], f"{m['name']}_std"):
+                    _value(cell, name, where)
+                ci = cell.get(f"{m['name']}_ci95")
+                if ci is not None and not (isinstance(ci, list) and len(ci) == 2 and all(
+                        _value({"v": v}, "v", where)[2] for v in ci)):
+                    raise ValueError(f"{where}: {m['name']}_ci95 is {ci!r:.60}, not [low, high] or null; the file "
+                                     "was edited or written by another tool: rerun the table")
+
+
 def no_table_error(root: Path) -> FileNotFoundError:
     return FileNotFoundError(
         f"report: {root} holds no table JSON (a <table>.json with fields table, rows, grid, metrics, written by "
@@ -114,6 +139,7 @@ def load_run(path) -> RunFolder:
             skipped.append((f, f"unreadable JSON ({exc})"))
             continue
         if is_table(obj):
+            check_table_file(obj, f)
             obj["_file"] = f.name  # several tables (or profiles of one) may share a folder
             tables.append(obj)
     if not tables:

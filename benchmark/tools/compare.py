@@ -69,7 +69,7 @@ def parse_tolerances(tol_args: Sequence[str] | None) -> dict[str, float]:
     return out
 
 
-def _check_table(table, label: str) -> None:
+def check_table(table, label: str) -> None:
     """Refuse what is not a table JSON this version can read, naming the file and the field."""
     if not isinstance(table, Mapping):
         raise ValueError(f"{label}: not a table JSON (expected an object)")
@@ -150,8 +150,8 @@ def compare_tables(a: Mapping, b: Mapping, tolerances: Mapping[str, float] | Non
     ``b``, ``diff`` (b - a), ``tol``, ``input`` (``same`` / ``changed`` / None: the cells' input
     fingerprints) and ``note`` (n/a reasons).
     """
-    _check_table(a, labels[0])
-    _check_table(b, labels[1])
+    check_table(a, labels[0])
+    check_table(b, labels[1])
     tolerances = dict(tolerances or {})
     rows: list[dict] = []
     for field in MUST_MATCH:
@@ -285,7 +285,7 @@ def load_table_json(path: str | Path) -> dict:
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
     except OSError as exc:
         raise ValueError(f"{path}: cannot read it ({exc.strerror or exc})") from None
-    _check_table(table, str(path))
+    check_table(table, str(path))
     return table
 
 

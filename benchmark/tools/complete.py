@@ -118,7 +118,11 @@ def _load_input(path: Path, args, body, spec: dict):
         raise ValueError(f"{path}: --start {args.start} s lies outside the motion ({motion.duration:.3f} s)")
     if args.start:
         motion = motion.window(float(motion.timestamps[0]) + args.start, motion.duration - args.start)
-    window = min(window_spec if args.window is None else args.window, motion.duration)
+    # the capture samples the motion from its first frame: a 120-frame 30 fps motion (4.0 s) serves a
+    # 50 fps capture up to its last frame, 3.967 s: 199 capture frames, a window of 3.98 s, not 4 s
+    capture_fps = float(spec["data"]["capture_fps"])
+    captured = (math.floor(motion.span * capture_fps + 1e-6) + 1) / capture_fps
+    window = min(window_spec if args.window is None else args.window, motion.duration, captured)
     obs, t_start = _observation_from_motion(motion, body, spec, window, args.points, args.fps, args.seed)
     what = (f"motion {path} ({motion.num_frames} frames at {motion.fps:.4g} fps), scanned at "
             f"{spec['data']['capture_fps']} fps x {spec['data']['points_per_frame']} points; observed {obs.num_frames} frames")

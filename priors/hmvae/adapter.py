@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import logging
 import math
+from pathlib import Path
 
 import torch
 from torch import nn
@@ -142,6 +143,11 @@ class HMVAEPrior(MotionEncoder, ExportableDecoder, PaperNetwork, Trainable, Prio
             raise ValueError(f"{self.name}: unknown size {size!r}; expected 'embedded' or 'paper'")
         if size == "embedded" and weights is None:
             weights = self.default_weights
+        elif size == "embedded":  # a path the user gave (FILE, VAE,TRAJ or a folder): most likely mistyped
+            missing = [s.strip() for s in str(weights).split(",") if s.strip() and not Path(s.strip()).expanduser().exists()]
+            if missing:
+                raise FileNotFoundError(f"{self.name} weights {', '.join(missing)}: no such file; check the path given "
+                                        "with --weights (or leave --weights out for the embedded weights)")
         nets, self.checkpoint = checkpoint.load(weights, size, trajectory=self.uses_trajectory)
         vae, trajectory = (nets["vae"], nets["trajectory"]) if self.uses_trajectory else (nets, None)
         self.weights_path = self.checkpoint.weights_path
