@@ -74,7 +74,7 @@ def check_table_file(table: dict, path: Path) -> None:
     of ``compare`` (fields, format version, rows and cells), at least one metric, and every metric
     value (and its ``_std``) a finite number or null, its ``_ci95`` null or two numbers."""
     from benchmark.run.writers import cell_label
-    from benchmark.tools.compare import _value, check_table
+    from benchmark.tools.compare import cell_value, check_table
 
     check_table(table, str(path))
     if not table["metrics"]:
@@ -86,10 +86,10 @@ def check_table_file(table: dict, path: Path) -> None:
             where = f"{path}: prior {row['prior']!r}, cell {cell_label(coords, list(coords)) if coords else '(no grid)'}"
             for m in table["metrics"]:
                 for name in (m["name"], f"{m['name']}_std"):
-                    _value(cell, name, where)
+                    cell_value(cell, name, where)
                 ci = cell.get(f"{m['name']}_ci95")
                 if ci is not None and not (isinstance(ci, list) and len(ci) == 2 and all(
-                        _value({"v": v}, "v", where)[2] for v in ci)):
+                        cell_value({"v": v}, "v", where)[2] for v in ci)):
                     raise ValueError(f"{where}: {m['name']}_ci95 is {ci!r:.60}, not [low, high] or null; the file "
                                      "was edited or written by another tool: rerun the table")
 

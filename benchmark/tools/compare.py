@@ -116,7 +116,7 @@ def _index(table: Mapping) -> dict[tuple[str, str], tuple[dict, Mapping]]:
     return out
 
 
-def _value(cell: Mapping, metric: str, where: str = "") -> tuple[float | None, str | None, bool]:
+def cell_value(cell: Mapping, metric: str, where: str = "") -> tuple[float | None, str | None, bool]:
     """(value, n/a reason, metric present in the cell). A value that is not a finite number
     raises ValueError naming ``where`` (file, prior, cell) and the metric."""
     if cell.get("na_reason"):
@@ -194,8 +194,8 @@ def compare_tables(a: Mapping, b: Mapping, tolerances: Mapping[str, float] | Non
                 rows.append(row)
                 continue
             where = cell_label(coords, list(coords)) if coords else "(no grid)"
-            va, ra, pa = _value(ca, metric, f"{labels[0]}: prior {prior!r}, cell {where}")
-            vb, rb, pb = _value(cb, metric, f"{labels[1]}: prior {prior!r}, cell {where}")
+            va, ra, pa = cell_value(ca, metric, f"{labels[0]}: prior {prior!r}, cell {where}")
+            vb, rb, pb = cell_value(cb, metric, f"{labels[1]}: prior {prior!r}, cell {where}")
             row["a"], row["b"] = va, vb
             if not pa or not pb:
                 row["status"] = "missing in A" if not pa else "missing in B"
