@@ -386,11 +386,13 @@ def _files_under(folder: Path, name: str) -> list[str]:
     return sorted(p.relative_to(folder).as_posix() for p in (folder / name).rglob("*") if not p.is_dir())
 
 
-def write_marker(folder: str | os.PathLike, command: str, entries, files: bool = False) -> Path:
+def write_marker(folder: str | os.PathLike, command: str, entries, files: bool = False,
+                 extra: dict | None = None) -> Path:
     """Record in ``folder`` that ``command`` wrote it and which top-level ``entries`` are its own
     (written atomically; entries it adds later are recorded by calling this again). ``files``: also
     record the files now inside each entry that is a folder (call it so once the command has
-    written them): a later ``--force`` then refuses a folder of its own holding anything else."""
+    written them): a later ``--force`` then refuses a folder of its own holding anything else.
+    ``extra``: more keys the command reads back (e.g. checksums of the files it wrote)."""
     folder = Path(folder)
     names = sorted({str(e) for e in entries})
     bad = [n for n in names if not _plain_name(n)]
@@ -400,6 +402,7 @@ def write_marker(folder: str | os.PathLike, command: str, entries, files: bool =
             "note": f"written by python -m benchmark {command}; --force replaces only these entries"}
     if files:
         data["files"] = {n: _files_under(folder, n) for n in names if (folder / n).is_dir()}
+    data.update(extra or {})
     tmp = folder / f".{MARKER_NAME}.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
     os.replace(tmp, _marker_path(folder))
