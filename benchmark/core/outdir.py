@@ -53,6 +53,23 @@ def _existing_ancestor(path: Path) -> Path:
     return p
 
 
+def _why_not_writable(exc: OSError, path: Path) -> str:
+    """Why a file cannot be created in the folder ``path`` (which exists), from the error creating
+    one, with the fix: a permission fix is offered only where permissions are the cause."""
+    reason = exc.strerror or str(exc)
+    if exc.errno == errno.ENOSPC:
+        return "the disk is full; free some space or choose another folder"
+    if exc.errno == errno.EDQUOT:
+        return "your disk quota is used up; free some space or choose another folder"
+    if exc.errno == errno.EROFS:
+        return "on a read-only filesystem; choose a folder on a writable disk"
+    if exc.errno in (errno.EACCES, errno.EPERM):
+        return f"not writable ({reason}); fix its permissions (chmod u+w {path}) or choose another folder"
+    return (f"its filesystem does not let files be created there (creating one failed: {reason}, although the folder "
+            "exists): a system folder such as /proc or /sys, or a special filesystem, not one for data; choose "
+            "another folder")
+
+
 def check_out_dir(out: str | os.PathLike, min_free_bytes: int = MIN_FREE_BYTES, what: str = "--out") -> Path:
     """Create ``out`` if needed and check that a run can write its results there.
 
@@ -69,8 +86,7 @@ def check_out_dir(out: str | os.PathLike, min_free_bytes: int = MIN_FREE_BYTES, 
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutDirError(f"{what} {path}: cannot create the folder ({exc.strerror or exc}); choose a writable "
-                          "location or fix the permissions of its parent") from None
+        raise OutDirError(f"{what} {path}: cannot create the folder in {anc}: {_why_not_writable(exc, anc)}") from None
     try:
         fd, probe = tempfile.mkstemp(dir=path, prefix=".write-probe.", suffix=".tmp")
         try:
@@ -79,10 +95,7 @@ def check_out_dir(out: str | os.PathLike, min_free_bytes: int = MIN_FREE_BYTES, 
             os.close(fd)
             os.unlink(probe)
     except OSError as exc:
-        if exc.errno == errno.ENOSPC:
-            raise OutDirError(f"{what} {path}: the disk is full; free some space or choose another folder") from None
-        raise OutDirError(f"{what} {path}: not writable ({exc.strerror or exc}); fix its permissions "
-                          f"(chmod u+w {path}) or choose another folder") from None
+        raise OutDirError(f"{what} {path}: {_why_not_writable(exc, path)}") from None
     try:
         free = shutil.disk_usage(path).free
     except OSError:
