@@ -154,3 +154,26 @@ def test_the_base_docstring_example_passes_check_prior(tmp_path, monkeypatch, ca
     finally:
         registry.unregister(entry.group(1))
         sys.modules.pop("tpose_pull_example", None)
+
+
+def test_the_example_s_random_start_has_its_mean(tmp_path, monkeypatch):
+    """The page says a prior whose ``init_latents`` is a random sample of the prior gives
+    ``mean_latents`` (table1 starts there); its own example drew N(0, I) and left it out."""
+    import torch
+
+    from priors.base import FitBatch
+
+    pkg = build_package(tmp_path / "tiny-pose-prior")
+    monkeypatch.syspath_prepend(str(pkg))
+    forget_module()
+    try:
+        prior = importlib.import_module(MODULE).TinyPosePrior()
+        batch = FitBatch(points=torch.zeros(2, 5, 10, 3), lengths=torch.full((2, 5), 10), timestamps=torch.arange(5.0).expand(2, 5) / 10,
+                         window_s=0.5, output_timestamps=torch.arange(15.0).expand(2, 15) / 30)
+        draws = [prior.init_latents(batch, torch.Generator().manual_seed(s)) for s in (0, 1)]
+        assert not torch.equal(draws[0]["z"], draws[1]["z"])  # a random start...
+        mean = prior.mean_latents(batch)  # ...so the prior's mean, with the same keys and shapes
+        assert mean is not None and {k: v.shape for k, v in mean.items()} == {k: v.shape for k, v in draws[0].items()}
+        assert torch.equal(mean["z"], torch.zeros_like(draws[0]["z"]))
+    finally:
+        forget_module()

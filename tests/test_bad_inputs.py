@@ -311,7 +311,7 @@ def _(tmp, mp):
     return ["compare", str(text_file(tmp / "a.json")), str(table_json(tmp, "b.json"))]
 
 
-@case("compare: format_version 99", "compare", "'format_version' is 99")
+@case("compare: format_version 99", "compare", "'format_version' is 99", "Compare it with the harness version")
 def _(tmp, mp):
     return ["compare", str(table_json(tmp, "a.json")), str(table_json(tmp, "b.json", format_version=99))]
 
@@ -1066,6 +1066,14 @@ def _(tmp, mp):
 def _(tmp, mp):
     return ["complete", str(motion_file(tmp / "m.npz")), "--prior", "vposer-slerp", "--size", "paper",
             "--weights", "a.pt", "--weights", "b.pt", "--out", str(tmp / "o")]
+
+
+@case("report: format_version 99", "report", "'format_version' is 99", "Make its report with the harness version")
+def _(tmp, mp):  # the fix in report's words, not compare's ("Compare it with ...")
+    run = tmp / "run"
+    run.mkdir()
+    table_json(run, "table1.json", format_version=99)
+    return ["report", str(run)]
 
 
 # (end of section: misc)

@@ -82,3 +82,23 @@ def test_units_left_out_are_said_never_silent(tmp_path, anny_body):
     (tmp_path / "units" / "moved__b000.json").write_text('{"unit_id": "moved__b0')
     with pytest.raises(ValueError, match=r"moved__b000\.json: not a readable unit result"):
         run_breakdown(tmp_path, anny_body)
+
+
+def test_a_folder_without_units_is_named_before_the_body_loads(tmp_path, monkeypatch, capsys):
+    """error-breakdown used to load the body model (seconds) before finding that the folder has no
+    units/; the folder is checked first now, and a missing or file run folder is named as such."""
+    import benchmark.body
+    from benchmark.cli import main
+
+    def no_body(*a, **k):
+        raise AssertionError("the body model loaded before the folder was checked")
+
+    monkeypatch.setattr(benchmark.body, "get_body", no_body)
+    for run_dir, message in ((tmp_path, "no units/ folder in"), (tmp_path / "absent", "absent does not exist"),
+                             (tmp_path / "t.json", "t.json is a file, not a run folder")):
+        if run_dir.suffix == ".json":
+            run_dir.write_text("{}")
+        assert main(["error-breakdown", str(run_dir)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: error-breakdown: ") and message in err, err
+        assert "AssertionError" not in err and "Traceback" not in err

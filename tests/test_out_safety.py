@@ -413,3 +413,40 @@ def test_a_prior_named_twice_is_refused_before_work(tmp_path, monkeypatch, capsy
     argv = ["run", "table1", "--prior", "no-prior", "--prior", "no-prior", "--out", str(tmp_path / "o")]
     assert main(argv) == 2
     assert "--prior no-prior given twice" in capsys.readouterr().err
+
+
+def test_report_replaces_only_its_own_earlier_output(tmp_path, capsys):
+    """The report used to take a folder for an earlier report of its own when its index.html merely
+    contained the text "python -m benchmark report" (or img/ held its old marker), and deleted that
+    folder's img/: now only the marker it writes with the files it wrote, and the checksum of its
+    index.html, make a folder its own; anything else is refused with nothing written or deleted."""
+    from test_bad_inputs import table_json
+
+    run = tmp_path / "run"
+    run.mkdir()
+    table_json(run, "table1.json")
+    notes = tmp_path / "notes"
+    (notes / "img").mkdir(parents=True)
+    (notes / "index.html").write_text("<p>Made the plots with python -m benchmark report, then edited them</p>")
+    (notes / "img" / "figure.png").write_bytes(b"mine")
+    args = ["report", str(run), "--sequences", "0", "--out"]
+    assert main(args + [str(notes)]) == 2
+    err = capsys.readouterr().err
+    assert "holds files the report did not write (img, index.html; no marker" in err and "Traceback" not in err
+    assert (notes / "img" / "figure.png").read_bytes() == b"mine" and sorted(p.name for p in notes.iterdir()) == ["img", "index.html"]
+    (notes / "img" / ".benchmark-report").write_text("written by python -m benchmark report\n")  # an older report's
+    assert main(args + [str(notes)]) == 2
+    assert "from an older harness" in capsys.readouterr().err and (notes / "img" / "figure.png").exists()
+    # its own earlier report is replaced; a file added to it, or an edited page, is not
+    rep = tmp_path / "rep"
+    assert main(args + [str(rep)]) == 0 and main(args + [str(rep)]) == 0
+    assert json.loads((rep / MARKER_NAME).read_text())["command"] == "report"
+    (rep / "img" / "mine.png").write_bytes(b"mine")
+    assert main(args + [str(rep)]) == 2
+    assert "did not write (img/mine.png)" in capsys.readouterr().err and (rep / "img" / "mine.png").exists()
+    (rep / "img" / "mine.png").unlink()
+    page = (rep / "index.html").read_text() + "<p>my note</p>"
+    (rep / "index.html").write_text(page)
+    assert main(args + [str(rep)]) == 2
+    assert "index.html (changed since the report wrote it)" in capsys.readouterr().err
+    assert (rep / "index.html").read_text() == page

@@ -292,3 +292,32 @@ def test_a_network_that_read_no_weights_file_is_recorded_untrained():
     assert "untrained" not in prior_identity(make_adapter("no-prior"), "embedded", None)
     adapter.weights_path = None  # as an adapter that found no file and kept its initial parameters
     assert prior_identity(adapter, "embedded", None)["untrained"] is True
+
+
+def test_two_packages_registering_one_prior_name_break_only_that_name(monkeypatch, capsys):
+    """A plug-in registering a name another package registers (here 'no-prior') used to stop every
+    prior command, ``list priors`` included; now only using that name fails, naming both packages and
+    the fix, and ``list priors`` shows the clash beside the other priors."""
+    from importlib.metadata import entry_points as real_entry_points
+    from types import SimpleNamespace
+
+    from benchmark.cli import main
+    from benchmark.core import plugins
+    from benchmark.run import registry as reg
+
+    plug = SimpleNamespace(name="no-prior", value="other_priors:Mine", dist=SimpleNamespace(name="other-priors", version="1.0"))
+    own = list(real_entry_points(group=reg.GROUP))
+    monkeypatch.setattr(plugins, "entry_points", lambda group: own + [plug] if group == reg.GROUP else real_entry_points(group=group))
+    monkeypatch.setattr(reg.PRIORS, "entries", None)  # discovered again, restored afterwards
+    assert main(["list", "priors"]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.strip().startswith("no-prior"))
+    assert "NAME CLASH" in row and "other-priors 1.0 (other_priors:Mine)" in row and "priors.no_prior:NoPrior" in row
+    assert re.search(r"^  vposer-slerp +Pavlakos", out, flags=re.M)  # every other prior still listed
+    with pytest.raises(ValueError, match=r"'no-prior' is registered by .* and by .*; uninstall all but one") as caught:
+        make_adapter("no-prior")
+    assert "other-priors 1.0 (other_priors:Mine)" in str(caught.value) and "(priors.no_prior:NoPrior)" in str(caught.value)
+    assert type(make_adapter("slerp")).__name__ == "SlerpBaseline"
+    assert main(["check-prior", "no-prior"]) == 2
+    err = capsys.readouterr().err
+    assert "error: prior name collision: 'no-prior'" in err and "Traceback" not in err

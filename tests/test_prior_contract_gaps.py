@@ -76,6 +76,22 @@ def test_encodes_translation_without_a_decoded_translation_is_named():
         body_parameters(st, st.obs_t, observed=True)
 
 
+def test_a_decoded_translation_under_encodes_translation_false_is_named():
+    """A prior that declares encodes_translation = False (the protocol fits free per-frame
+    translation) but returns trans anyway: the decoded translation used to be added silently to the
+    free one; now the fit stops, naming the prior, the declaration and both fixes."""
+    class StrayTrans(Pull):
+        def decode(self, latents, timestamps, shape=None):
+            rot = super().decode(latents, timestamps, shape).rotations
+            return Decoded(rotations=rot, trans=torch.ones(*rot.shape[:2], 3))
+
+    st = _state(StrayTrans())
+    st.trans = torch.zeros(1, 4, 3)  # what init_state frees for a prior that does not encode translation
+    with pytest.raises(ValueError, match=r"prior 'pull' declares encodes_translation = False but decode returned a "
+                                         r"translation.*return trans=None.*or declare encodes_translation = True"):
+        body_parameters(st, st.obs_t, observed=True)
+
+
 def test_a_frozen_network_that_is_no_submodule_is_named_as_the_declaration():
     from benchmark.run.registry import make_adapter, register, unregister
 

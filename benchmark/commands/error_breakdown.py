@@ -16,8 +16,9 @@ def add_command(sub) -> None:
 
     def run(args) -> int:
         from benchmark.body import get_body
-        from benchmark.tools.error_breakdown import format_rows, run_breakdown
+        from benchmark.tools.error_breakdown import format_rows, run_breakdown, units_folder
 
+        units_folder(args.run_dir)  # a folder with no units/ is named before the body model loads
         rows = run_breakdown(args.run_dir, get_body(args.body), args.prior)
         print("MPJPE split (mm), means over every output frame of the cell; observed/between: output frames at / "
               "between observed instants; pelvis: root position error; aligned and the parts: pelvis-aligned")

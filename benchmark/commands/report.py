@@ -7,31 +7,20 @@ from pathlib import Path
 
 from benchmark.commands.common import HelpFormatter
 
-# what the report writes into its folder: index.html and img/ (img/.benchmark-report marks it)
-REPORT_ENTRIES = ("index.html", "img")
-
-
 def check_report_args(run_dir, out) -> Path:
     """Before anything loads or renders: RUN_DIR is a run folder (a file, such as RUN/table1.json, is
     named as such, with the fix); --out (default RUN_DIR/report) is a writable folder, neither the
     run folder nor around it (a folder inside it is fine: the default), and holds nothing but an
-    earlier report, which the report replaces. Returns the output folder."""
-    from benchmark.core.outdir import OutDirError, check_not_overlapping, check_out_dir
+    earlier report (recognised by its marker: :mod:`benchmark.report.out_folder`), which the
+    report replaces. Returns the output folder."""
+    from benchmark.core.outdir import check_not_overlapping, check_out_dir
+    from benchmark.report.out_folder import check_report_folder
     from benchmark.report.run_folder import check_run_folder
 
     root = check_run_folder(run_dir)
     folder = Path(out) if out is not None else root / "report"
     check_not_overlapping(folder, [("run folder", root)], allow_inside=True)
-    if folder.is_dir():
-        entries = sorted(p.name for p in folder.iterdir())
-        index = folder / "index.html"
-        ours = (folder / "img" / ".benchmark-report").exists() or (
-            index.is_file() and "python -m benchmark report" in index.read_text(errors="replace"))
-        foreign = [n for n in entries if n not in REPORT_ENTRIES and n != ".lock"]
-        if entries and (not ours or foreign):
-            what = f"files the report did not write ({', '.join(foreign[:3])})" if ours else "files the report did not write"
-            raise OutDirError(f"--out {folder}: holds {what}; the report replaces its folder's index.html and img/, so "
-                              "nothing was written: choose an empty or new --out")
+    check_report_folder(folder)  # nothing but an earlier report, as its marker records it
     return check_out_dir(folder, min_free_bytes=1 << 20)
 
 

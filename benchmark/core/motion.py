@@ -222,7 +222,7 @@ class Motion:
     def save(self, path) -> Path:
         """Write the harness ``.npz`` (see module docstring), atomically (temp file + rename)."""
         path = Path(path)
-        if path.suffix != ".npz":
+        if path.suffix.lower() != ".npz":
             raise ValueError(f"{path}: the harness motion format is .npz; give a path ending in .npz")
         arrays = {
             "poses": self.poses.detach().cpu().numpy().astype(np.float32),

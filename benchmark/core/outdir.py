@@ -53,6 +53,23 @@ def _existing_ancestor(path: Path) -> Path:
     return p
 
 
+def _why_not_writable(exc: OSError, path: Path) -> str:
+    """Why a file cannot be created in the folder ``path`` (which exists), from the error creating
+    one, with the fix: a permission fix is offered only where permissions are the cause."""
+    reason = exc.strerror or str(exc)
+    if exc.errno == errno.ENOSPC:
+        return "the disk is full; free some space or choose another folder"
+    if exc.errno == errno.EDQUOT:
+        return "your disk quota is used up; free some space or choose another folder"
+    if exc.errno == errno.EROFS:
+        return "on a read-only filesystem; choose a folder on a writable disk"
+    if exc.errno in (errno.EACCES, errno.EPERM):
+        return f"not writable ({reason}); fix its permissions (chmod u+w {path}) or choose another folder"
+    return (f"its filesystem does not let files be created there (creating one failed: {reason}, although the folder "
+            "exists): a system folder such as /proc or /sys, or a special filesystem, not one for data; choose "
+            "another folder")
+
+
 def check_out_dir(out: str | os.PathLike, min_free_bytes: int = MIN_FREE_BYTES, what: str = "--out") -> Path:
     """Create ``out`` if needed and check that a run can write its results there.
 
@@ -69,8 +86,7 @@ def check_out_dir(out: str | os.PathLike, min_free_bytes: int = MIN_FREE_BYTES, 
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutDirError(f"{what} {path}: cannot create the folder ({exc.strerror or exc}); choose a writable "
-                          "location or fix the permissions of its parent") from None
+        raise OutDirError(f"{what} {path}: cannot create the folder in {anc}: {_why_not_writable(exc, anc)}") from None
     try:
         fd, probe = tempfile.mkstemp(dir=path, prefix=".write-probe.", suffix=".tmp")
         try:
@@ -79,10 +95,7 @@ def check_out_dir(out: str | os.PathLike, min_free_bytes: int = MIN_FREE_BYTES, 
             os.close(fd)
             os.unlink(probe)
     except OSError as exc:
-        if exc.errno == errno.ENOSPC:
-            raise OutDirError(f"{what} {path}: the disk is full; free some space or choose another folder") from None
-        raise OutDirError(f"{what} {path}: not writable ({exc.strerror or exc}); fix its permissions "
-                          f"(chmod u+w {path}) or choose another folder") from None
+        raise OutDirError(f"{what} {path}: {_why_not_writable(exc, path)}") from None
     try:
         free = shutil.disk_usage(path).free
     except OSError:
@@ -386,11 +399,13 @@ def _files_under(folder: Path, name: str) -> list[str]:
     return sorted(p.relative_to(folder).as_posix() for p in (folder / name).rglob("*") if not p.is_dir())
 
 
-def write_marker(folder: str | os.PathLike, command: str, entries, files: bool = False) -> Path:
+def write_marker(folder: str | os.PathLike, command: str, entries, files: bool = False,
+                 extra: dict | None = None) -> Path:
     """Record in ``folder`` that ``command`` wrote it and which top-level ``entries`` are its own
     (written atomically; entries it adds later are recorded by calling this again). ``files``: also
     record the files now inside each entry that is a folder (call it so once the command has
-    written them): a later ``--force`` then refuses a folder of its own holding anything else."""
+    written them): a later ``--force`` then refuses a folder of its own holding anything else.
+    ``extra``: more keys the command reads back (e.g. checksums of the files it wrote)."""
     folder = Path(folder)
     names = sorted({str(e) for e in entries})
     bad = [n for n in names if not _plain_name(n)]
@@ -400,6 +415,7 @@ def write_marker(folder: str | os.PathLike, command: str, entries, files: bool =
             "note": f"written by python -m benchmark {command}; --force replaces only these entries"}
     if files:
         data["files"] = {n: _files_under(folder, n) for n in names if (folder / n).is_dir()}
+    data.update(extra or {})
     tmp = folder / f".{MARKER_NAME}.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
     os.replace(tmp, _marker_path(folder))

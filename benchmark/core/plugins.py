@@ -53,15 +53,25 @@ class PluginEntry:
 
 def discover(group: str, entry_type: type[PluginEntry],
              found: dict[str, PluginEntry] | None = None) -> dict[str, PluginEntry]:
-    """The entries of the entry-point group ``group`` added to ``found``; a name two distributions
-    register with different targets is an error."""
+    """The entries of the entry-point group ``group`` added to ``found``. A name two distributions
+    register with different targets is a clash: the name is kept, unusable (:meth:`PluginRegistry.lookup`
+    raises the error naming both and the fix; ``list`` shows it), and every other name still works."""
     found = {} if found is None else found
     for ep in entry_points(group=group):
         dist = getattr(ep, "dist", None)
         origin = f"{dist.name} {dist.version}" if dist is not None else "unknown"
-        if ep.name in found and found[ep.name].target != ep.value:
-            raise ValueError(f"{entry_type.kind} name collision: {ep.name!r} is registered by {found[ep.name].origin} "
-                             f"({found[ep.name].target}) and by {origin} ({ep.value}); uninstall one of them")
+        prev = found.get(ep.name)
+        if prev is not None and (prev.target != ep.value or "clash" in prev.extra):
+            clash = list(prev.extra.get("clash") or [f"{prev.origin} ({prev.target})"])
+            if f"{origin} ({ep.value})" not in clash:
+                clash.append(f"{origin} ({ep.value})")
+            entry = entry_type(ep.name, prev.target, prev.origin, extra={"clash": clash})
+            entry.error = (f"{entry_type.kind} name collision: {ep.name!r} is registered by {' and by '.join(clash)}; "
+                           "uninstall all but one of those packages (pip uninstall NAME), or rename the entry point "
+                           f"in one of them (group {group!r})")
+            entry_type.logger().warning("%s", entry.error)
+            found[ep.name] = entry
+            continue
         found[ep.name] = entry_type(ep.name, ep.value, origin)
     return found
 
@@ -123,12 +133,15 @@ class PluginRegistry:
         self.all().pop(name, None)
 
     def lookup(self, name: str, *, matches: int = 3, listed: str = "Registered") -> PluginEntry:
-        """The entry of ``name``; an unknown name is a KeyError naming the close ones."""
+        """The entry of ``name``; an unknown name is a KeyError naming the close ones, a name two
+        packages register (a clash) a ValueError naming both and the fix."""
         reg = self.all()
         if name not in reg:
             close = difflib.get_close_matches(str(name), list(reg), n=matches)
             hint = f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
             raise KeyError(f"unknown {self.kind} {name!r}.{hint} {listed}: {', '.join(sorted(reg)) or '(none)'}")
+        if "clash" in reg[name].extra:
+            raise ValueError(reg[name].error)
         return reg[name]
 
     def load(self, name: str):

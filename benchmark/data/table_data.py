@@ -39,7 +39,9 @@ def load_motions(data: str | None, min_duration: float, body=None, sample_fps: f
         from benchmark.loaders.amass import is_shape_file, load_amass
 
         root = Path(data.split("=", 1)[-1])
-        files = sorted(root.rglob("*.npz")) if root.is_dir() else [root]
+        files = [root]
+        if root.is_dir():  # motion.npz or motion.NPZ (data convert writes either)
+            files = sorted(p for p in root.rglob("*") if p.suffix.lower() == ".npz" and p.is_file())
         if not files:
             raise FileNotFoundError(f"--data {data}: no .npz motion files under {root}")
         import numpy as np

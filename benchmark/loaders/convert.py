@@ -74,7 +74,7 @@ def convert(input_path, out_path, fps: float | None = None, overwrite: bool = Fa
     output folder is checked (creatable, writable) before the input is read.
     """
     out_path = Path(out_path)
-    if out_path.suffix != ".npz":
+    if out_path.suffix.lower() != ".npz":
         raise ValueError(f"{out_path}: the output is a harness motion .npz; give a path ending in .npz")
     if out_path.is_dir():
         raise ValueError(f"--out {out_path}: is a folder; give the output file, e.g. {out_path / 'motion.npz'}")

@@ -112,8 +112,9 @@ def apply_free_rigid(state: FitState, rot: torch.Tensor, trans: torch.Tensor | N
 def _decode_output(adapter, dec, like: torch.Tensor) -> Decoded:
     """``dec``, what ``adapter.decode`` returned, checked before it is interpolated or skinned: a
     :class:`Decoded` of tensors with ``like``'s (the body's) dtype and device, with a translation
-    where the prior declares ``encodes_translation``. A ValueError naming the prior, the field and
-    the fix otherwise (not torch's dtype error inside the body, or a TypeError adding None)."""
+    where the prior declares ``encodes_translation`` and none where it does not. A ValueError naming
+    the prior, the field and the fix otherwise (not torch's dtype error inside the body, a TypeError
+    adding None, or a decoded translation silently added to the free one)."""
     name = adapter.name
     if not isinstance(dec, Decoded):
         raise ValueError(f"prior {name!r}: decode returned {type(dec).__name__}, expected a priors.base.Decoded"
@@ -130,6 +131,11 @@ def _decode_output(adapter, dec, like: torch.Tensor) -> Decoded:
         raise ValueError(f"prior {name!r} declares encodes_translation = True but decode returned trans=None: return "
                          "the decoded translation (B, T, 3), or declare encodes_translation = False (the protocol "
                          "then fits a free per-frame translation)")
+    if not adapter.encodes_translation and dec.trans is not None:
+        raise ValueError(f"prior {name!r} declares encodes_translation = False but decode returned a translation "
+                         "(trans): the protocol fits its own free per-frame translation, and the decoded one would be "
+                         "added to it unseen; return trans=None, or declare encodes_translation = True (the protocol "
+                         "then uses the decoded translation, with a free constant offset)")
     return dec
 
 

@@ -11,11 +11,11 @@ those arrays were stored get no animation and the page says so where the animati
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from pathlib import Path
 
 from benchmark.report.cells import CellReport, cell_text, diagnose, run_animation_jobs, safe_name
+from benchmark.report.out_folder import check_report_folder, finish_report_folder, start_report_folder
 from benchmark.report.run_folder import RunFolder, load_run, sequence_rows
 from benchmark.report.sections import (about_html, animation_section, breakdown_section, diagnostics_table, esc,
                                        figure_html, metric_table)
@@ -47,16 +47,8 @@ def build_report(run_dir, out_dir=None, sequences: int = DEFAULT_SEQUENCES, anim
         if not features.check("webp"):
             log.warning("report: this Pillow has no WebP support; writing GIF animations")
             animation_format = "gif"
-    img_dir = out / "img"
-    marker = img_dir / ".benchmark-report"
-    if img_dir.exists():
-        index = out / "index.html"
-        ours = marker.exists() or (index.is_file() and "python -m benchmark report" in index.read_text(errors="replace"))
-        if not ours:
-            raise FileExistsError(f"report: {img_dir} exists and was not written by the report; choose another --out")
-        shutil.rmtree(img_dir)  # a previous report's images: replaced
-    img_dir.mkdir(parents=True)
-    marker.write_text("written by python -m benchmark report; replaced on the next report into this folder\n")
+    check_report_folder(out)  # nothing but an earlier report, as its marker records it
+    img_dir = start_report_folder(out)
 
     from benchmark.report import plots
 
@@ -68,6 +60,7 @@ def build_report(run_dir, out_dir=None, sequences: int = DEFAULT_SEQUENCES, anim
     page = _page(run, sections, out, time.perf_counter() - t_start)
     index = out / "index.html"
     index.write_text(page, encoding="utf-8")
+    finish_report_folder(out)
     log.info("report: %s (%.1f s)", index, time.perf_counter() - t_start)
     return index
 

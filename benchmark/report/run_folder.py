@@ -76,7 +76,7 @@ def check_table_file(table: dict, path: Path) -> None:
     from benchmark.run.writers import cell_label
     from benchmark.tools.compare import cell_value, check_table
 
-    check_table(table, str(path))
+    check_table(table, str(path), with_writer="Make its report with the harness version that wrote it")
     if not table["metrics"]:
         raise ValueError(f"{path}: field 'metrics' is empty: a table names the metrics its cells hold; the file "
                          "was edited or written by another tool: rerun the table")

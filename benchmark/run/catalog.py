@@ -120,6 +120,9 @@ def table_rows():
     rows = []
     for name in table_names():
         entry = table_registry()[name]
+        if "clash" in entry.extra:
+            rows.append((name, f"NAME CLASH: {entry.error}"))
+            continue
         try:
             spec = load_table_spec(name)
         except Exception as exc:  # a broken plug-in's spec must not take `list` down
@@ -135,7 +138,9 @@ def _plugin_rows(entries, describe) -> list[tuple[str, str]]:
     rows = []
     for name, entry in sorted(entries.items()):
         obj = entry.load()
-        if obj is None:
+        if "clash" in entry.extra:  # two packages register the name: only using it fails
+            rows.append((name, f"NAME CLASH: {entry.error}"))
+        elif obj is None:
             rows.append((name, f"LOAD ERROR ({entry.origin}, {entry.target}): {entry.error}"))
         else:
             rows.append((name, f"{describe(obj)}  [{entry.origin}: {entry.target}]"))

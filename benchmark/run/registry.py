@@ -2,7 +2,8 @@
 
 Registering imports nothing heavy: an entry point is a ``"module:Class"`` placeholder that is
 imported on first use. A plug-in that fails to import is reported by name (``list`` shows the
-error) and skipped; it never takes the CLI down. The project's own priors register through the
+error) and skipped; it never takes the CLI down, nor does a name two packages register (only
+using that name fails; ``list`` shows the clash). The project's own priors register through the
 same group (``pyproject.toml``), exactly like a third-party package would.
 """
 

@@ -69,8 +69,13 @@ def parse_tolerances(tol_args: Sequence[str] | None) -> dict[str, float]:
     return out
 
 
-def check_table(table, label: str) -> None:
-    """Refuse what is not a table JSON this version can read, naming the file and the field."""
+COMPARE_WITH_WRITER = "Compare it with the harness version that wrote it"
+
+
+def check_table(table, label: str, with_writer: str = COMPARE_WITH_WRITER) -> None:
+    """Refuse what is not a table JSON this version can read, naming the file and the field.
+    ``with_writer``: the first fix for a format version this harness does not read, in the words of
+    the command that reads the table (``report``: make the report with the harness that wrote it)."""
     if not isinstance(table, Mapping):
         raise ValueError(f"{label}: not a table JSON (expected an object)")
     missing = [k for k in TABLE_FIELDS if k not in table]
@@ -79,8 +84,7 @@ def check_table(table, label: str) -> None:
     version = table.get("format_version")
     if version is not None and (not isinstance(version, int) or isinstance(version, bool) or version not in KNOWN_FORMAT_VERSIONS):
         raise ValueError(f"{label}: field 'format_version' is {version!r}; this harness reads table format version(s) "
-                         f"{sorted(KNOWN_FORMAT_VERSIONS)}. Compare it with the harness version that wrote it, or rerun "
-                         "the table with this one")
+                         f"{sorted(KNOWN_FORMAT_VERSIONS)}. {with_writer}, or rerun the table with this one")
     if not isinstance(table["grid"], Mapping) or not all(isinstance(v, list) for v in table["grid"].values()):
         raise ValueError(f"{label}: field 'grid' must be an object (axis -> list of values), got {table['grid']!r:.80}")
     if not isinstance(table["metrics"], list) or not all(isinstance(m, Mapping) and isinstance(m.get("name"), str)

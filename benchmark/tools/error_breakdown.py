@@ -71,15 +71,26 @@ def unit_errors(body, arrays: dict) -> dict[str, torch.Tensor]:
     return {k: ((v * w).sum(1), w.sum(1)) for k, (v, w) in per_frame.items()}
 
 
+def units_folder(run_dir) -> Path:
+    """``run_dir/units``, checked before anything loads (the body model is slow to): a FileNotFoundError
+    naming the folder and the fix when it is not there."""
+    root = Path(run_dir)
+    if not root.is_dir():
+        what = "is a file, not a run folder" if root.is_file() else "does not exist"
+        raise FileNotFoundError(f"error-breakdown: {run_dir} {what} (give the --out folder of a table1 or sls run)")
+    units = root / "units"
+    if not units.is_dir():
+        raise FileNotFoundError(f"error-breakdown: no units/ folder in {run_dir} (give the --out folder of a "
+                                f"table1 or sls run)")
+    return units
+
+
 def run_breakdown(run_dir, body, priors: list[str] | None = None) -> list[dict]:
     """One row per (prior, cell) of the completion units in ``run_dir/units`` (JSON + arrays):
     ``{"prior", "cell", "sequences", figure: mm, ...}``, in the order the units sort."""
     from benchmark.data.unit_arrays import read_arrays
 
-    units = Path(run_dir) / "units"
-    if not units.is_dir():
-        raise FileNotFoundError(f"error-breakdown: no units/ folder in {run_dir} (give the --out folder of a "
-                                f"table1 or sls run)")
+    units = units_folder(run_dir)
     sums: dict = defaultdict(lambda: defaultdict(float))
     counts: dict = defaultdict(int)
     skipped = []
