@@ -54,6 +54,26 @@ def test_bootstrap_is_deterministic_for_a_seed():
     assert a != bootstrap_ci(values, weights, np.random.default_rng(43))
 
 
+@pytest.mark.parametrize("level, z", [(0.95, 1.959964), (0.90, 1.644854)])
+def test_bootstrap_ci_takes_the_two_tails_of_the_level(level, z):
+    """A sample symmetric about 10: the bootstrap distribution of its mean is symmetric about 10, so
+    the percentile interval is too, each half about z * sd / sqrt(n) wide (z the normal quantile of
+    (1 + level) / 2). Many resamples make the tails exact to about 1 %. Catches a tail taken at the
+    wrong quantile (e.g. the lower one at 1 - level), which the width checks above let through."""
+    values = 10.0 + np.linspace(-2.0, 2.0, 21)
+    lo, hi = bootstrap_ci(values, np.ones(21), np.random.default_rng(0), n=50_000, level=level)
+    half = z * values.std() / np.sqrt(len(values))
+    assert 10.0 - lo == pytest.approx(half, rel=0.05)
+    assert hi - 10.0 == pytest.approx(half, rel=0.05)
+
+
+def test_excludes_zero_needs_the_whole_interval_on_one_side():
+    """An interval that touches 0 does not exclude it (a paired interval of differences that are all
+    <= 0 with some exactly 0 ends at 0): no significance mark."""
+    assert not excludes_zero((-1.0, 0.0)) and not excludes_zero((0.0, 1.0)) and not excludes_zero((-1.0, 1.0))
+    assert excludes_zero((-1.0, -1e-9)) and excludes_zero((1e-9, 1.0))
+
+
 def test_paired_interval_excludes_zero_for_a_shift_and_includes_it_for_noise():
     rng = np.random.default_rng(3)
     difficulty = rng.gamma(2.0, 10.0, size=12)  # shared by both cells: hard sequences are hard for both

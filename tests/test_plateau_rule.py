@@ -171,6 +171,28 @@ def test_a_fit_at_the_cap_before_its_last_reduction_is_not_converged():
     assert log["reductions"][0] < 3 and log["converged"] == [False] and log["stopped"] == "cap"
 
 
+def test_a_flat_fit_capped_before_its_last_reduction_is_not_converged():
+    """A constant objective (zero gradient): flat at every check. With two reductions and a window of
+    25 steps it is reduced at step 25 and would be judged anew from step 50; a cap of 40 stops it
+    at its first reduced rate with a change of exactly 0, within the tolerance: still not converged,
+    for it never met the rule at its last rate. (The fit above, at the cap before its last
+    reduction, is also still falling; this one is not, so only the reductions count can tell.)"""
+    x = torch.zeros(1, requires_grad=True)
+    trace = []
+
+    def step_loss(step):
+        f = 1.0 + 0.0 * x
+        trace.append(f.detach())
+        return f.sum(), lambda: {"f": float(f.detach().mean())}
+
+    rule = PlateauRule(window=20, tolerance=0.005, smoothing=5, check_every=5, anneal_steps=0, reductions=2,
+                       factor=0.5)
+    _, log = optimise_to_plateau("toy", [x], 40, 0.1, 0.1, step_loss, trace, rule)
+    assert log["reductions"] == [1] and log["plateau_decrease"] == [0.0] and log["descent_steps"] == [40]
+    assert log["converged"] == [False] and log["stopped"] == "cap"
+    assert sequence_diagnostics(torch.stack(trace), plateau=log)[0]["converged"] is False
+
+
 def test_min_steps_keeps_every_sequence_descending():
     x, c, trace, step_loss = _l1_problem([2.0, 6.0])
     rule = PlateauRule(window=20, tolerance=0.005, smoothing=5, check_every=5, anneal_steps=0, reductions=1,

@@ -65,6 +65,17 @@ def test_spec_hash_follows_the_rules_not_the_presentation():
     assert {k for k in base if new_weights[k] != base[k]} == {k for k in base if "__hmvae__" in k}
 
 
+def test_spec_hash_follows_the_protocol_version():
+    """``protocol_version`` is kept out of the rules (a presentation key there) but enters every
+    unit's spec itself: a version bump (a protocol change in code, e.g. how frames are scored, with
+    no rule field changed) must never reuse a unit computed under the old version."""
+    base = {u.unit_id: u.spec_hash for u in plan()}
+    spec = table_spec()
+    spec["protocol_version"] = int(spec["protocol_version"]) + 1
+    bumped = {u.unit_id: u.spec_hash for u in plan(spec=spec)}
+    assert bumped.keys() == base.keys() and all(bumped[k] != base[k] for k in base)
+
+
 def test_unit_ids_are_filesystem_safe_and_collisions_are_errors():
     units = plan(priors=["my prior/v2"])
     assert units[0].unit_id == "table1__my-prior-v2__points=100_fps=5__b000"
