@@ -193,6 +193,31 @@ def test_a_flat_fit_capped_before_its_last_reduction_is_not_converged():
     assert sequence_diagnostics(torch.stack(trace), plateau=log)[0]["converged"] is False
 
 
+@pytest.mark.parametrize("cap", [50, 55, 65])
+def test_a_fit_cut_to_its_last_rate_at_or_just_before_the_cap_is_not_converged(cap):
+    """A constant objective, two reductions, a window of 25 steps: reduced at steps 25 and 50. With
+    a cap of 50 its second reduction falls on the cap's own check; with 55 or 65 it holds at the cap
+    less than a window after it. Its change is 0, within the tolerance, but it was never measured
+    over a whole window at its last rate: not converged (it was flagged converged before)."""
+    x = torch.zeros(1, requires_grad=True)
+    trace = []
+
+    def step_loss(step):
+        f = 1.0 + 0.0 * x
+        trace.append(f.detach())
+        return f.sum(), lambda: {}
+
+    rule = PlateauRule(window=20, tolerance=0.005, smoothing=5, check_every=5, anneal_steps=0, reductions=2,
+                       factor=0.5)
+    _, log = optimise_to_plateau("toy", [x], cap, 0.1, 0.1, step_loss, trace, rule)
+    assert log["reductions"] == [2] and log["descent_steps"] == [cap] and log["plateau_decrease"] == [0.0]
+    assert log["converged"] == [False] and log["stopped"] == "cap"
+    # a whole window at the last rate before the cap: held by the rule, converged
+    trace.clear()
+    _, log = optimise_to_plateau("toy", [x], 200, 0.1, 0.1, step_loss, trace, rule)
+    assert log["reductions"] == [2] and log["descent_steps"] == [75] and log["converged"] == [True]
+
+
 def test_min_steps_keeps_every_sequence_descending():
     x, c, trace, step_loss = _l1_problem([2.0, 6.0])
     rule = PlateauRule(window=20, tolerance=0.005, smoothing=5, check_every=5, anneal_steps=0, reductions=1,

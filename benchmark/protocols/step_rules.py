@@ -221,6 +221,7 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
             snapshot = [p.detach().clone() for p in tensors]
             stage = torch.zeros(B, dtype=torch.long)
             since = torch.zeros(B, dtype=torch.long)  # descent steps since the sequence's rate last changed
+            judged = torch.zeros(B, dtype=torch.bool)  # held after a whole window at its rate (not cut by the cap)
         since += 1
         with torch.no_grad():
             if bool(held.any()):  # the held sequences stay where they stopped
@@ -239,6 +240,7 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
             if bool(new.any()):
                 decrease[new] = change[new]
                 stopped_at[new] = step
+                judged[new] = since[new] >= rule.min_descent  # 0 where the rate was cut at this very check
                 held |= new
                 held_on = held.to(tensors[0].device)  # the mask on the variables' device, moved only when it changes
                 new_on = new.to(tensors[0].device)
@@ -258,9 +260,11 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
                 _scale_steps(tensors, before, scale_on)
             sched.step()
             step += 1
-    # converged: within the tolerance when it stopped, at its last reduced rate
+    # converged: within the tolerance when it stopped, at its last reduced rate, over a whole window at
+    # that rate (a sequence cut to its last rate at the cap's check, or less than a window before it,
+    # was measured across two rates: not converged)
     within = (decrease.abs() <= rule.tolerance_at(stage)).tolist()
-    converged = [bool(w and k >= rule.reductions) for w, k in zip(within, stage.tolist())]
+    converged = [bool(w and k >= rule.reductions and j) for w, k, j in zip(within, stage.tolist(), judged.tolist())]
     out = {"descent_steps": [int(v) for v in stopped_at.tolist()], "steps": step,
            "stopped": "plateau" if descent < descent_cap or all(converged) else "cap",
            "plateau_decrease": [round(float(v), 6) for v in decrease.tolist()], "converged": converged}
