@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
+from benchmark.core.memory import RELEASE_EVERY, release_free_memory
 from benchmark.protocols.kept_rows import KeptRows
 
 LOG_EVERY = 25  # optimisation history: the first, every 25th and the last step
@@ -64,6 +65,8 @@ def adam_step(opt, prior_name: str, step_loss, step: int, history: list, logged:
     if after_backward is not None:
         loss = after_backward()
     opt.step()
+    if step % RELEASE_EVERY == RELEASE_EVERY - 1:  # long fits: freed memory back to the system (no value changes)
+        release_free_memory()
     if logged:
         history.append({"step": step, **log()})
     if callback is not None:

@@ -12,6 +12,7 @@ from collections import deque
 from typing import Sequence
 
 from benchmark.core.work_units import estimate_cost
+from benchmark.core.memory import release_free_memory
 
 
 # --------------------------------------------------------------------------------------------
@@ -87,6 +88,8 @@ def execute_unit(execute, unit) -> tuple:
         return ("ok", execute(unit))
     except Exception as exc:  # one failing unit must not take the worker (or the run) down
         return ("error", type(exc).__name__, str(exc), traceback.format_exc(), worker_where())
+    finally:  # the unit's fit freed its arrays: hand the pages back before the next unit (benchmark.core.memory)
+        release_free_memory()
 
 
 def reply_to_outcome(reply) -> tuple[dict | None, BaseException | None]:
