@@ -15,25 +15,14 @@ IN_WORKER = bool(os.environ.get("PYTEST_XDIST_WORKER"))
 torch.set_num_threads(1 if IN_WORKER else max(1, min(2, torch.get_num_threads())))
 
 MAX_WORKERS = 4  # each worker holds its own body model and data (about 1-2 GB): more cores than this gain little
-# Test files that start Ray (a local runtime, or a two-node cluster with `ray start`) run on one
-# worker, one after the other (``--dist loadgroup``), so that two Ray runtimes (and their signal
-# tests) never start at once on one machine.
-RAY_TEST_FILES = ("test_backends.py", "test_ray_cluster.py", "test_signals.py")
-# The committed quick tables (``-m slow``) run one after the other too: each runs its units on every
-# core (``--jobs`` = the cores), and an sls unit can hold several GB.
-SERIAL_GROUPS = {**{f: "ray" for f in RAY_TEST_FILES}, "test_quick_tables.py": "quick-tables"}
 
 
 def pytest_xdist_auto_num_workers(config):
-    """``-n auto``: the machine's cores, at most MAX_WORKERS."""
+    """``-n auto``: the machine's cores, at most MAX_WORKERS. The tests of one file run on one
+    worker, one after the other (``--dist loadfile`` in pyproject.toml), so that a file's
+    module-scoped fixture (a smoke table run, a trained model) is built once, and the committed
+    quick tables of ``-m slow`` (one file, each table on every core) never run at once."""
     return max(1, min(MAX_WORKERS, os.cpu_count() or 1))
-
-
-def pytest_collection_modifyitems(config, items):
-    for item in items:
-        group = SERIAL_GROUPS.get(os.path.basename(str(item.fspath)))
-        if group:
-            item.add_marker(pytest.mark.xdist_group(name=group))
 
 
 @pytest.fixture(scope="session")
