@@ -7,32 +7,33 @@ from __future__ import annotations
 import pytest
 import torch
 
-from benchmark.core.rotations import matrix_to_sixd, sixd_to_matrix
+from benchmark.core.rotations import matrix_to_sixd
 from benchmark.protocols.fit_state import FitState, body_parameters
-from priors.base import Decoded, FitBatch, PriorAdapter, WindowSpec
+from priors.base import Decoded, FitBatch
 
 
-class Pull(PriorAdapter):
+def _docstring_example() -> type:
+    """The minimal adapter of ``priors/base.py``'s docstring (``TPosePull``), run as written."""
+    import textwrap
+
+    import priors.base as base
+
+    doc = base.__doc__
+    block = doc[doc.index("::\n", doc.index("Minimal example:")) + 3:]
+    lines = []
+    for line in block.splitlines():
+        if line.strip() and not line.startswith("    "):
+            break
+        lines.append(line)
+    namespace: dict = {}
+    exec(textwrap.dedent("\n".join(lines)), namespace)
+    return namespace["TPosePull"]
+
+
+class Pull(_docstring_example()):
     """The docstring example of priors/base.py: per-frame 6D poses pulled towards the T-pose."""
 
     name = "pull"
-    window = WindowSpec(kind="per-frame")
-
-    def __init__(self, size="embedded", weights=None, device="cpu"):
-        super().__init__(size=size, weights=weights, device=device)
-        self.register_buffer("eye6", matrix_to_sixd(torch.eye(3), layout="interleaved"))
-
-    def init_latents(self, batch: FitBatch, generator: torch.Generator):
-        noise = 0.01 * torch.randn(batch.batch_size, batch.num_observed, 21, 6, generator=generator)
-        return {"pose": self.eye6 + noise.to(self.device)}
-
-    def decode(self, latents, timestamps, shape=None):
-        body = sixd_to_matrix(latents["pose"], layout="interleaved")
-        root = torch.eye(3, dtype=body.dtype, device=body.device).expand(*body.shape[:2], 1, 3, 3)
-        return Decoded(rotations=torch.cat([root, body], dim=2))
-
-    def prior_term(self, latents):
-        return (latents["pose"] - self.eye6).square().sum((-1, -2)).mean(-1)
 
 
 def _state(adapter, B=1, n=4):
