@@ -12,6 +12,7 @@ import torch
 
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
+from benchmark.protocols import start_cache
 from benchmark.protocols.latent_checks import prior_values
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, init_state,
                                              repeat_batch, rigid_parameters, set_yaw, subset_batch, subset_data_term)
@@ -95,14 +96,15 @@ _FACING_CACHE: OrderedDict = OrderedDict()
 FACING_CACHE_SIZE = 16
 
 
-def facing_key(body, batch: FitBatch, device, lr: float, lambda_prior: float) -> tuple:
+def facing_key(body, batch: FitBatch, device, lr: float, lambda_prior: float, body_token=None) -> tuple:
     """What :func:`observation_facing`'s result depends on: the observation's content (its
-    :func:`~benchmark.data.degrade.fingerprint`), the body, the device, the objective and the search's sizes."""
+    :func:`~benchmark.data.degrade.fingerprint`), the body (``body_token``, else the object's id: a
+    key for this process only), the device, the objective and the search's sizes."""
     from benchmark.data.degrade import fingerprint
 
     obs = PointCloudSequence(points=batch.points.detach().cpu(), lengths=batch.lengths.cpu(),
                              timestamps=batch.timestamps.detach().cpu())
-    return (fingerprint(obs), float(batch.window_s), id(body), str(device), float(lr), float(lambda_prior),
+    return (fingerprint(obs), float(batch.window_s), id(body) if body_token is None else body_token, str(device), float(lr), float(lambda_prior),
             FACING_HYPOTHESES, FACING_POINTS, FACING_VERTICES, tuple(FACING_STEPS))
 
 
@@ -116,7 +118,8 @@ def observation_facing(body, batch: FitBatch, generator: torch.Generator, device
 
     A deterministic function of the observation (the prior-free body draws nothing from
     ``generator``): the result is kept per process (the last FACING_CACHE_SIZE observations) and
-    served again, bit for bit, to the next prior fitted to the same observation."""
+    served again, bit for bit, to the next prior fitted to the same observation; within a table run,
+    on disk too (:mod:`benchmark.protocols.start_cache`)."""
     from priors.no_prior import NoPrior
 
     key = facing_key(body, batch, device, lr, lambda_prior)
@@ -124,9 +127,16 @@ def observation_facing(body, batch: FitBatch, generator: torch.Generator, device
     if hit is not None and hit[0] is body:
         _FACING_CACHE.move_to_end(key)
         return hit[1].clone(), copy.deepcopy(hit[2])
-    with torch.enable_grad():
-        ref, log = facing_search(NoPrior(device=device), body, batch, generator, device, lr, lambda_prior)
-    yaw = mean_heading(ref, batch)
+    # on disk (a table run's <out>/cache/starts, benchmark.protocols.start_cache): the body is the run's
+    disk_key = ("facing", *facing_key(body, batch, device, lr, lambda_prior, body_token="run body"))
+    stored = start_cache.read(disk_key, device)
+    if stored is not None and isinstance(stored.get("yaw"), torch.Tensor):
+        yaw, log = stored["yaw"], stored["log"]
+    else:
+        with torch.enable_grad():
+            ref, log = facing_search(NoPrior(device=device), body, batch, generator, device, lr, lambda_prior)
+        yaw = mean_heading(ref, batch)
+        start_cache.write(disk_key, log, yaw=yaw.detach().cpu())
     _FACING_CACHE[key] = (body, yaw.clone(), copy.deepcopy(log))
     while len(_FACING_CACHE) > FACING_CACHE_SIZE:
         _FACING_CACHE.popitem(last=False)

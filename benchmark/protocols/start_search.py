@@ -21,6 +21,7 @@ from benchmark.protocols.latent_checks import check_latents, prior_values
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, as_latent, body_parameters,
                                               decode_grid, frame_chamfer, init_state, repeat_batch, rigid_parameters,
                                               set_rigid, subset_batch)
+from benchmark.protocols import start_cache
 from benchmark.protocols.multi_start import repeat_state
 from benchmark.protocols.step_rules import optimise
 from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encoder
@@ -196,26 +197,33 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
     :func:`benchmark.protocols.facing.observed_facing`, table1; ``"aligned"``, facing +z, the
     facing the sls data rules give every sequence), then :func:`limb_start_search`.
     Deterministic (the prior-free body draws nothing from ``generator``); kept per process for the
-    last START_CACHE_SIZE observations and served again as a fresh copy. Returns the state and the
+    last START_CACHE_SIZE observations and served again as a fresh copy, and, within a table run, on
+    disk for its other workers and its resumptions (:mod:`benchmark.protocols.start_cache`). Returns the state and the
     search's log."""
     from benchmark.protocols.facing import facing_key, observed_facing
     from priors.no_prior import NoPrior
 
     if facing not in PRIOR_FREE_FACINGS:
         raise ValueError(f"prior_free_start: unknown facing {facing!r}; choose one of {', '.join(PRIOR_FREE_FACINGS)}")
-    key = ("start", facing, *facing_key(body, batch, device, lr, lambda_prior), repr(LIMB_START_STAGES),
-           START_SEARCH_STEPS)
+    sizes = (repr(LIMB_START_STAGES), START_SEARCH_STEPS)
+    key = ("start", facing, *facing_key(body, batch, device, lr, lambda_prior), *sizes)
     hit = _START_CACHE.get(key)
     if hit is None or hit[0] is not body:
         ref_prior = NoPrior(device=device)
-        if facing == "aligned":
-            state = init_state(ref_prior, body, batch, generator, device, search_heading=False, latent_init="mean")
-            facing_log = {"facing": "aligned"}
-        else:
-            state, facing_log = observed_facing(ref_prior, body, batch, generator, device, lr, lambda_prior,
-                                                latent_init="mean")
-        state, search_log = limb_start_search(ref_prior, body, batch, state, lr, lambda_prior)
-        hit = (body, state, {**facing_log, **search_log})
+        # on disk (a table run's <out>/cache/starts, benchmark.protocols.start_cache): the body is the run's
+        disk_key = ("start", facing, *facing_key(body, batch, device, lr, lambda_prior, body_token="run body"), *sizes)
+        stored = start_cache.load_state(disk_key, ref_prior, device)
+        if stored is None:
+            if facing == "aligned":
+                state = init_state(ref_prior, body, batch, generator, device, search_heading=False, latent_init="mean")
+                facing_log = {"facing": "aligned"}
+            else:
+                state, facing_log = observed_facing(ref_prior, body, batch, generator, device, lr, lambda_prior,
+                                                    latent_init="mean")
+            state, search_log = limb_start_search(ref_prior, body, batch, state, lr, lambda_prior)
+            stored = (state, {**facing_log, **search_log})
+            start_cache.store_state(disk_key, *stored)
+        hit = (body, *stored)
         _START_CACHE[key] = hit
         while len(_START_CACHE) > START_CACHE_SIZE:
             _START_CACHE.popitem(last=False)

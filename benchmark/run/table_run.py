@@ -10,6 +10,15 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 
+def _version(package: str) -> str | None:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(package)
+    except PackageNotFoundError:
+        return None
+
+
 def _sha_file(path: str | None) -> str | None:
     if not path or not Path(path).is_file():
         return None
@@ -135,15 +144,28 @@ class TableExecutor:
         self.body = body
         self.source = source
         self.device = device
+        self.start_cache = None  # (folder, namespace): the prior-free searches on disk (use_start_cache)
+
+    def use_start_cache(self, folder: Path) -> None:
+        """Keep the prior-free searches (facing, limb start) in ``folder``, for the run's other workers
+        and its resumptions (:mod:`benchmark.protocols.start_cache`)."""
+        from benchmark.protocols.start_cache import start_namespace
+        from benchmark.run.backends import code_fingerprint
+
+        body = body_identity(self.body) or {"body": self.body.name, "anny": _version("anny")}
+        self.start_cache = (Path(folder), start_namespace(code_fingerprint(), body))
 
     def __call__(self, unit) -> dict:
+        from benchmark.protocols.start_cache import use_start_cache
+
         adapter = self.adapters[unit.prior]
         reason = self.protocol.na_reason(self.spec, adapter)
         if reason:
             from benchmark.core.work_units import na_result
 
             return na_result(unit, reason)
-        return self.protocol.run_unit(unit, self.spec, self.profile, adapter, self.body, self.source, self.device)
+        with use_start_cache(*(self.start_cache or (None, ""))):
+            return self.protocol.run_unit(unit, self.spec, self.profile, adapter, self.body, self.source, self.device)
 
     def unit_cost(self, unit) -> float:
         """Relative cost of a unit (for longest-first ordering): the protocol's ``unit_cost``
@@ -165,6 +187,7 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     from benchmark.run.writers import format_markdown, write_table
 
     from benchmark.run.same_cells import same_cells
+    from benchmark.protocols.start_cache import START_CACHE_FOLDER
 
     protocol = table_protocol(spec)
     same_cells(spec)  # a malformed same_cells entry fails here, not when the table is derived after every unit
@@ -199,6 +222,8 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
                        threads=backend_threads(run_backend))
     source = protocol.make_source(spec, body, motions, seed)
     execute = TableExecutor(protocol, spec, profile, adapters, body, source, device)
+    if backend != "ray":  # Ray's workers may not share this disk
+        execute.use_start_cache(Path(out_dir) / Path(*START_CACHE_FOLDER))
 
     report = run_units(units, execute, out_dir, resume=resume, backend=run_backend,
                        carry=lambda unit: protocol.carry_problem(spec))
