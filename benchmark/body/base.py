@@ -14,6 +14,8 @@ transforms) is computed once per shape by :meth:`BodyModel.prepare` and shared b
 
 from __future__ import annotations
 
+import copy
+import weakref
 from dataclasses import dataclass
 
 import torch
@@ -50,6 +52,21 @@ class BodyModel(torch.nn.Module):
     @property
     def num_vertices(self) -> int:
         raise NotImplementedError
+
+    def on_cpu(self) -> "BodyModel":
+        """This body on the CPU: itself when it is there, else a copy made once and kept (the body
+        itself is not moved). The tables build their data (captures, ground truth, observations) on
+        it whatever the run's device, so a GPU run fits and scores the very observations a CPU run
+        does, with the same fingerprints (a GPU's rounding would otherwise move every scan point)."""
+        if self.faces.device.type == "cpu":
+            return self
+        kept = _CPU_COPIES.get(self)
+        if kept is None:
+            kept = copy.deepcopy(self)
+            kept.__dict__.pop("_loss_subsets", None)  # made on the device: the CPU copy makes its own
+            kept = kept.to("cpu")
+            _CPU_COPIES[self] = kept
+        return kept
 
     @property
     def landmark_names(self) -> tuple[str, ...]:
@@ -105,18 +122,24 @@ class BodyModel(torch.nn.Module):
         return self.prepare(shape).joints
 
     def loss_vertex_indices(self, count: int | None) -> torch.Tensor | None:
-        """A fixed, evenly spread subset of ``count`` vertices (farthest-point sample of the T-pose), or None for all."""
+        """A fixed, evenly spread subset of ``count`` vertices (farthest-point sample of the T-pose,
+        chosen on the CPU: the same vertices on every device), or None for all."""
         if count is None or count >= self.num_vertices:
             return None
         cache = self.__dict__.setdefault("_loss_subsets", {})
-        if count not in cache:
-            from benchmark.core.surface_sampling import farthest_point_indices
+        hit = cache.get(count)
+        if hit is not None and hit.device == self.faces.device:  # (a copy moved to another device chooses again)
+            return hit
+        if self.faces.device.type != "cpu":
+            cache[count] = self.on_cpu().loss_vertex_indices(count).to(self.faces.device)
+            return cache[count]
+        from benchmark.core.surface_sampling import farthest_point_indices
 
-            with torch.no_grad():
-                rest = self.prepare(self.default_shape(1).to(self.faces.device))
-                eye = torch.eye(3, device=self.faces.device).expand(1, 1, NUM_JOINTS, 3, 3)
-                tpose = self.skin(rest, eye, torch.zeros(1, 1, 3, device=self.faces.device)).vertices[0, 0]
-            cache[count] = farthest_point_indices(tpose, count).to(self.faces.device)
+        with torch.no_grad():
+            rest = self.prepare(self.default_shape(1))
+            eye = torch.eye(3).expand(1, 1, NUM_JOINTS, 3, 3)
+            tpose = self.skin(rest, eye, torch.zeros(1, 1, 3)).vertices[0, 0]
+        cache[count] = farthest_point_indices(tpose, count)
         return cache[count]
 
     def landmarks(self, vertices: torch.Tensor) -> torch.Tensor:
@@ -133,3 +156,7 @@ def as_rotation_matrices(rotations: torch.Tensor, sixd_layout: str = "columns") 
     if rotations.shape[-2:] != (3, 3):
         raise ValueError(f"rotations must end in (3, 3) or (6,), got shape {tuple(rotations.shape)}")
     return rotations
+
+
+# BodyModel.on_cpu's copies, by body (a body on a device keeps its CPU copy while it lives)
+_CPU_COPIES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()

@@ -35,7 +35,7 @@ class CompletionData:
 
     def __init__(self, table_spec: dict, body, motions_by_id: dict, seed: int):
         self.spec = table_spec
-        self.body = body
+        self.body = body.on_cpu()  # the data is made on the CPU whatever the run's device (BodyModel.on_cpu)
         self.motions = motions_by_id
         self.seed = seed
         self._cache: dict = {}

@@ -69,7 +69,7 @@ class DenoiseSource(MotionSource):
     def marker_indices(self) -> torch.Tensor:
         def build():
             count = int((self.spec.get("data") or {}).get("num_markers", 43))
-            return virtual_marker_indices(self.body, count)
+            return virtual_marker_indices(self.body.on_cpu(), count).to(self.body.faces.device)
 
         return self.cached(("markers",), build)
 
@@ -85,9 +85,9 @@ class DenoiseSource(MotionSource):
         clean = self.clean(ids)
         markers = self.marker_indices()
         parts = []
-        for b, (sid, motion) in enumerate(zip(ids, clean.motions)):
-            obs, _ = make_noisy_joints([motion], sigma, self.noise_seed(sigma, sid), body=self.body,
-                                       marker_indices=markers, shapes=clean.shapes[b:b + 1])
+        for b, (sid, motion) in enumerate(zip(ids, clean.motions)):  # on the CPU whatever the device (BodyModel.on_cpu)
+            obs, _ = make_noisy_joints([motion], sigma, self.noise_seed(sigma, sid), body=self.body.on_cpu(),
+                                       marker_indices=markers.cpu(), shapes=clean.shapes[b:b + 1].cpu())
             parts.append(obs)
         cat = lambda name: torch.cat([getattr(p, name) for p in parts])  # noqa: E731
         obs = NoisyJoints(rotations=cat("rotations"), joints=cat("joints"), markers=cat("markers"),

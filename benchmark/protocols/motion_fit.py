@@ -189,7 +189,9 @@ class MotionSource:
         return self.cached(("clean", tuple(sequence_ids), window), lambda: self._build_clean(list(sequence_ids), window))
 
     def _build_clean(self, ids: list, window: float) -> CleanBatch:
-        body = self.body
+        # made on the CPU whatever the run's device (BodyModel.on_cpu), then moved: the same ground truth everywhere
+        _, run_device = body_float(self.body)
+        body = self.body.on_cpu()
         dtype, device = body_float(body)
         n = int(round(window * self.fps))
         motions = []
@@ -214,6 +216,7 @@ class MotionSource:
         with torch.no_grad():
             rest = body.prepare(shapes)
             joints = body.skin(rest, rot, trans, vertex_indices=_one_vertex(device)).joints
+        rot, trans, ts, shapes, joints = (x.to(run_device) for x in (rot, trans, ts, shapes, joints))
         return CleanBatch(ids=ids, motions=motions, timestamps=ts, rotations=rot, trans=trans, shapes=shapes,
                           joints=joints, fps=self.fps, window_s=window)
 
@@ -491,9 +494,7 @@ def objective_value(spec: dict, key: str, default=None):
     return obj.get(key, default)
 
 
-__all__ = [
-    "CleanBatch", "MotionSource", "MotionTargets", "Timer", "data_term", "decode_parameters",
-    "device_name", "fit_motion", "free_parameters", "global_rotations", "init_motion_state",
-    "is_interpolation_baseline", "joints_of", "load_table_motions", "motion_shapes", "pelvis_centred", "quaternion_loss",
-    "set_rigid_from_observation", "table_window", "tensor_fingerprint", "unit_result", "v2v_sums",
-]
+__all__ = ["CleanBatch", "MotionSource", "MotionTargets", "Timer", "data_term", "decode_parameters", "device_name",
+           "fit_motion", "free_parameters", "global_rotations", "init_motion_state", "is_interpolation_baseline",
+           "joints_of", "load_table_motions", "motion_shapes", "pelvis_centred", "quaternion_loss",
+           "set_rigid_from_observation", "table_window", "tensor_fingerprint", "unit_result", "v2v_sums"]

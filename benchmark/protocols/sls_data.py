@@ -31,7 +31,8 @@ class SlsData:
     """Builds and caches (the last batch) the anchors' ground truth of batches of sequences."""
 
     def __init__(self, spec: dict, body, motions_by_id: dict, seed: int):
-        self.spec, self.body, self.motions, self.seed = spec, body, motions_by_id, seed
+        # the data is made on the CPU whatever the run's device (BodyModel.on_cpu)
+        self.spec, self.body, self.motions, self.seed = spec, body.on_cpu(), motions_by_id, seed
         self._cache: dict = {}
 
     def unit_data(self, ids: list[str]) -> SlsUnitData:
