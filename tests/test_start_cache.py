@@ -152,16 +152,23 @@ def test_a_log_json_would_change_is_not_stored(tmp_path):
 
 
 def test_a_local_table_run_keeps_its_starts_in_its_out_folder(tmp_path):
+    from benchmark.run.catalog import load_table_spec
     from benchmark.run.table_run import TableExecutor
 
     class Body:
         name = "anny"
 
-    execute = TableExecutor(None, {}, {}, {}, Body(), None, "cpu")
-    assert execute.start_cache is None
-    execute.use_start_cache(tmp_path / "cache" / "starts")
-    folder, namespace = execute.start_cache
-    assert folder == tmp_path / "cache" / "starts" and len(namespace) == 64
-    other = TableExecutor(None, {}, {}, {}, type("B", (), {"name": "smpl"})(), None, "cpu")
-    other.use_start_cache(folder)
-    assert other.start_cache[1] != namespace  # another body, another namespace
+    def namespace(spec, body=Body()):
+        execute = TableExecutor(None, spec, {}, {}, body, None, "cpu")
+        assert execute.start_cache is None
+        execute.use_start_cache(tmp_path / "cache" / "starts")
+        folder, name = execute.start_cache
+        assert folder == tmp_path / "cache" / "starts" and len(name) == 64
+        return name
+
+    spec = load_table_spec("table1")
+    same = namespace(spec)
+    assert namespace(load_table_spec("table1")) == same
+    assert namespace({**spec, "protocol_version": spec["protocol_version"] + 1}) != same
+    assert namespace({**spec, "objective": {**spec["objective"], "lr": 0.5}}) != same  # another rule
+    assert namespace(spec, type("B", (), {"name": "smpl"})()) != same  # another body

@@ -10,9 +10,11 @@ observation, and serves it back bit for bit: a unit computed from a stored start
 computed from a fresh search.
 
 A file's name is the sha256 of its key (what the search depends on: the observation's fingerprint,
-its facing rule, the objective and the search's sizes) and of the run's namespace: the sha256 of the
-harness's source code, torch's version and the body (:func:`start_namespace`). Any change of code,
-torch or body therefore searches again, never serves an old start. A file that cannot be read, or
+its facing rule, the objective and the search's sizes) and of the run's namespace: the table, its
+protocol version and rules, torch's version and the body (:func:`start_namespace`). Another
+protocol version, rule, torch or body therefore searches again, never serves an old start; like
+the stored work units, the stored starts outlive a change of code that moves no number (one that
+does bumps the protocol version, docs/protocol.md). A file that cannot be read, or
 whose stored key differs, is searched again with a warning. The Ray backend does not use it (its
 workers may not share the driver's disk).
 """
@@ -39,11 +41,10 @@ TENSOR_FIELDS = ("shape_param", "obs_t", "root", "trans", "heading", "offset")
 _ACTIVE: list = []  # (folder, namespace) of the unit executing in this process
 
 
-def start_namespace(code: str, body_identity) -> str:
-    """What every stored start of a run depends on besides its key: ``code`` (a digest of the
-    harness's sources), torch's version, and ``body_identity`` (JSON-able: what identifies the body)."""
-    return hashlib.sha256(json.dumps({"code": code, "torch": torch.__version__, "body": body_identity},
-                                     sort_keys=True, default=str).encode()).hexdigest()
+def start_namespace(identity: dict) -> str:
+    """What every stored start of a run depends on besides its key: ``identity`` (JSON-able: the
+    table, its protocol version and rules, the body) and torch's version."""
+    return hashlib.sha256(json.dumps({**identity, "torch": torch.__version__}, sort_keys=True, default=str).encode()).hexdigest()
 
 
 @contextmanager

@@ -149,11 +149,13 @@ class TableExecutor:
     def use_start_cache(self, folder: Path) -> None:
         """Keep the prior-free searches (facing, limb start) in ``folder``, for the run's other workers
         and its resumptions (:mod:`benchmark.protocols.start_cache`)."""
+        from benchmark.core.work_units import table_rules
         from benchmark.protocols.start_cache import start_namespace
-        from benchmark.run.backends import code_fingerprint
 
         body = body_identity(self.body) or {"body": self.body.name, "anny": _version("anny")}
-        self.start_cache = (Path(folder), start_namespace(code_fingerprint(), body))
+        identity = {"table": self.spec.get("name"), "protocol_version": self.spec.get("protocol_version"),
+                    "rules": table_rules(self.spec), "body": body}
+        self.start_cache = (Path(folder), start_namespace(identity))
 
     def __call__(self, unit) -> dict:
         from benchmark.protocols.start_cache import use_start_cache
