@@ -374,3 +374,36 @@ def test_a_capture_slower_than_the_observed_rate_is_an_error_naming_the_folder(t
         source.observe(["slow"], 100, 5.0, seed=0)
     obs, offsets = source.observe(["slow"], 100, 2.0, seed=0)  # 2 fps from 4 fps: every other frame
     assert obs.timestamps[0].tolist() == [0.0, 0.5] and offsets == [0.0] and obs.lengths.tolist() == [[100, 100]]
+
+
+def test_a_sequences_ground_truth_and_score_do_not_depend_on_its_batch(tmp_path, anny_body):
+    """Each captured sequence's ground truth is cut to its own smallest frame, by its own seed (scan
+    rules revision 2). Before, every frame of a unit was cut to the unit's smallest, by the unit's
+    seed: a 1,200-point capture batched with a 300-point one was scored against 300 of its points,
+    and its output -> scan distances (nearest of fewer points) grew."""
+    import dataclasses
+
+    import torch
+
+    from benchmark.body.base import BodyOutput
+    from benchmark.protocols.completion_unit import evaluate
+    from benchmark.run.table_run import motion_sha256
+
+    g = np.random.default_rng(5)
+    dense = ScanSequence(write_folder(tmp_path / "dense", [person(n=1200, rng=g) for _ in range(40)]), check=False)
+    sparse = ScanSequence(write_folder(tmp_path / "sparse", [person(n=300, rng=g) for _ in range(40)]), check=False)
+    spec = table1_spec(window_s=0.7)
+    alone = ScanCompletionData(spec, None, {"dense": dense}, seed=0).unit_data(["dense"])
+    both = ScanCompletionData(spec, None, {"dense": dense, "sparse": sparse}, seed=0).unit_data(["dense", "sparse"])
+    assert isinstance(both.gt_points, list) and [tuple(x.shape) for x in both.gt_points] == [(1, 21, 1200, 3), (1, 21, 300, 3)]
+    assert alone.gt_points.shape == (1, 21, 1200, 3)
+    assert torch.equal(both.gt_points[0], alone.gt_points)  # the same points, in the same order (its own seed)
+    rest = anny_body.prepare(anny_body.default_shape(2))
+    eye = torch.eye(3).expand(2, 21, 22, 3, 3)
+    out = anny_body.skin(rest, eye, torch.zeros(2, 21, 3) + torch.tensor([0.0, 0.9, 0.0]))
+    zeros = torch.zeros(2, 21, 22, 3)
+    rows = evaluate(anny_body, out, dataclasses.replace(both, gt_joints=zeros), "cpu", surface_points=200)
+    one = evaluate(anny_body, BodyOutput(vertices=out.vertices[:1], joints=out.joints[:1]),
+                   dataclasses.replace(alone, gt_joints=zeros[:1]), "cpu", surface_points=200)
+    assert len(rows) == 2 and rows[0]["sums"] == one[0]["sums"]
+    assert motion_sha256(dense) != dense.content_sha256()  # stored capture units of revision 1 are computed again

@@ -69,6 +69,7 @@ class CompletionData:
         return data
 
 
+SCAN_TREE_SETS = 16  # the ground-truth KD-tree sets a unit's data keeps (evaluate, by sequence for captures of different sizes)
 SURFACE_K = 8  # nearest mesh vertices whose incident triangles are the surface candidates of a scan point
 
 
@@ -95,6 +96,10 @@ def evaluate(body, output, data: UnitData, device, surface_points: int | None = 
     """
     from benchmark.metrics.chamfer import map_elements, build_tree, query_tree
 
+    if isinstance(data.gt_points, (list, tuple)):  # captures of different sizes: each its own ground truth
+        return [row for b, g in enumerate(data.gt_points) for row in evaluate(
+            body, dataclasses.replace(output, vertices=output.vertices[b:b + 1], joints=output.joints[b:b + 1]),
+            dataclasses.replace(data, gt_points=g, gt_joints=data.gt_joints[b:b + 1]), device, surface_points)]
     verts = output.vertices.to("cpu", torch.float32)
     B, T = verts.shape[:2]
     gt = data.gt_points.to(verts)
@@ -160,8 +165,9 @@ def _scan_trees(data: UnitData, g_flat: torch.Tensor) -> list:
         return cache[key]
     g_np = g_flat.numpy().astype(np.float64)
     trees = map_elements(lambda i: build_tree(np.ascontiguousarray(g_np[i])), g_np.shape[0])
-    if cache is not None:
-        cache.clear()
+    if cache is not None:  # one batch's trees, or one per sequence when its captures differ in size
+        while len(cache) >= SCAN_TREE_SETS:
+            cache.pop(next(iter(cache)))
         cache[key] = trees
     return trees
 

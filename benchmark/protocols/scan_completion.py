@@ -19,8 +19,11 @@ states them; docs/captures.md repeats them for users):
   |t - t_i| / |t_j - t_i| of the way to its nearest neighbour in the neighbouring frame t_j on
   t's side (nearest-neighbour scene flow; exact for motion normal to the surface, which is what
   a Chamfer distance sees). The largest |t - t_i| is recorded per sequence
-  (``gt_time_offset_max_s``; at most half a capture period). The frames of one unit are cut to their smallest point count by a
-  seeded random subset (in random order, as the synthetic i.i.d. scans).
+  (``gt_time_offset_max_s``; at most half a capture period). The frames of each sequence are cut
+  to that sequence's smallest point count by a seeded random subset (in random order, as the
+  synthetic i.i.d. scans; the subset's seed is the sequence's own); sequences of different sizes keep theirs (``UnitData.gt_points`` is
+  then a list, one (1, T, N_b, 3) tensor per sequence), so a sequence's score never depends on the
+  sequences batched with it (scan rules revision 2, :data:`SCAN_RULES_REVISION`).
 - MPJPE: ``n/a``, reason "no ground-truth joints".
 """
 
@@ -35,6 +38,11 @@ from benchmark.loaders.scans import ScanSequence, find_scan_sequences, parse_sca
 from benchmark.data.observations import PointCloudSequence
 
 log = logging.getLogger(__name__)
+
+# The revision of the rules above, in every captured sequence's data hash (benchmark.run.table_run):
+# 2 (2026-12-07): the ground truth cut per sequence, by the sequence's own seed, no longer to the unit's
+# smallest frame by the unit's seed.
+SCAN_RULES_REVISION = 2
 
 # An output instant within this many seconds of a capture frame's timestamp is that frame's instant.
 TIME_MATCH_S = 1e-6
@@ -126,29 +134,29 @@ class ScanCompletionData:
         out_fps = float(self.spec["output_fps"])
         n_out = int(round(window * out_fps))
         rel = np.arange(n_out, dtype=np.float64) / out_fps
-        frames, extra, where = [], [], []
-        for sid in sequence_ids:
+        gt, extra = [], []
+        for sid in sequence_ids:  # each sequence cut to its own smallest frame, by its own seed: never by its batch
+            g = torch.Generator().manual_seed(stable_seed("gt-scan", self.seed, sid))
             seq = self.motions[sid]
             _, t0 = self._window_start(seq)
             idx, off = seq.nearest_frames(t0 + rel)
-            frames += [self._ground_truth_frame(sid, int(i), float(o)) for i, o in zip(idx, off)]
-            where += [(sid, int(i)) for i in idx]
+            frames = [self._ground_truth_frame(sid, int(i), float(o)) for i, o in zip(idx, off)]
             extra.append({"gt_time_offset_max_s": float(np.abs(off).max()), "capture_fps": seq.capture_fps})
-        sizes = [f.shape[0] for f in frames]
-        count = min(sizes)
-        median = float(np.median(sizes))
-        if count < 0.5 * median:
-            # every ground-truth frame of the unit is cut to one size: a sparse frame would cut them all
-            sid, i = where[int(np.argmin(sizes))]
-            raise ValueError(f"scans {sid}: capture frame {i} (t = {float(self.motions[sid].timestamps[i]):.3f} s) holds "
-                             f"{count} points, under half the median ({median:.0f}) of the ground-truth frames it is "
-                             f"scored with; remove that frame from the capture (or export it again)")
-        if count < median:
-            log.info("scans %s: ground-truth frames cut to %d points (their median: %d)", sequence_ids, count, median)
-        g = torch.Generator().manual_seed(stable_seed("gt-scan", self.seed, *sequence_ids))
-        gt = torch.stack([torch.from_numpy(f)[torch.randperm(f.shape[0], generator=g)[:count]] for f in frames])
-        gt = gt.view(len(sequence_ids), n_out, count, 3)
+            sizes = [f.shape[0] for f in frames]
+            count, median = min(sizes), float(np.median(sizes))
+            if count < 0.5 * median:
+                # every ground-truth frame of the sequence is cut to one size: a sparse frame would cut them all
+                i = int(idx[int(np.argmin(sizes))])
+                raise ValueError(f"scans {sid}: capture frame {i} (t = {float(seq.timestamps[i]):.3f} s) holds "
+                                 f"{count} points, under half the median ({median:.0f}) of the sequence's ground-truth "
+                                 f"frames; remove that frame from the capture (or export it again)")
+            if count < median:
+                log.info("scans %s: ground-truth frames cut to %d points (their median: %d)", sid, count, median)
+            gt.append(torch.stack([torch.from_numpy(f)[torch.randperm(f.shape[0], generator=g)[:count]]
+                                   for f in frames])[None])
         out_t = torch.from_numpy(rel)[None].expand(len(sequence_ids), -1).clone()
+        if len({x.shape[2] for x in gt}) == 1:
+            gt = torch.cat(gt)
         data = UnitData(scans=None, out_t=out_t, gt_points=gt, gt_joints=None, row_extra=extra)
         self._cache = {key: data}
         return data

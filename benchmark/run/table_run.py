@@ -31,8 +31,10 @@ def motion_sha256(motion) -> str:
     motions under one name hash differently; the same motion hashes the same wherever it lies."""
     import numpy as np
 
-    if hasattr(motion, "content_sha256"):  # a capture (benchmark.loaders.scans.ScanSequence)
-        return motion.content_sha256()
+    if hasattr(motion, "content_sha256"):  # a capture (benchmark.loaders.scans.ScanSequence), under the scan rules' revision
+        from benchmark.protocols.scan_completion import SCAN_RULES_REVISION
+
+        return hashlib.sha256(f"{motion.content_sha256()};scan-rules:{SCAN_RULES_REVISION}".encode()).hexdigest()
     h = hashlib.sha256()
     for name in ("poses", "trans", "timestamps", "shape"):
         value = getattr(motion, name, None)
