@@ -327,10 +327,7 @@ def train_embedded(out_dir=None, steps: int | None = None, seed: int = 0, overwr
     steps; the trajectory model's scale with it (default 12000 and 4800: the committed weights). Refuses to overwrite
     existing files unless ``overwrite``."""
     out = Path(out_dir) if out_dir is not None else training.WEIGHTS_DIR
-    targets = [out / n for n in ("hmvae.pt", "hmvae_trajectory.pt")]
-    existing = [str(t) for t in targets if t.exists()]
-    if existing and not overwrite:
-        raise FileExistsError(f"{existing} exist: pass --force to overwrite them, or --out DIR to write elsewhere")
+    training.refuse_overwrite(out, ["hmvae.pt", "hmvae_trajectory.pt"], overwrite)
     vae_steps = VAE_STEPS if steps is None else int(steps)
     traj_steps = max(1, round(vae_steps * TRAJ_STEPS / VAE_STEPS))
     rest = training.fixed_rest_skeleton()[0]
