@@ -18,10 +18,8 @@ import datetime as _dt
 import json
 import logging
 import math
-import os
 import platform
 import subprocess
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +28,8 @@ from typing import Callable
 import torch
 
 from benchmark.core.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
-from priors.training_state import TrainingSession, check_finite, current_session, load_state, restore
+from priors.training_state import (TrainingSession, atomic_write, check_finite, current_session, load_state, restore,
+                                   save_state)
 
 log = logging.getLogger(__name__)
 
@@ -192,10 +191,6 @@ def train_loop(
         torch.set_num_threads(old_threads)
 
 
-def _save_state(path: Path, state: dict) -> None:
-    _atomic_write(path, lambda tmp: torch.save(state, tmp))
-
-
 def _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay, final_lr_ratio, log_every, val_data,
                 val_batch, session: TrainingSession | None = None) -> TrainResult:
     if steps < 1 or batch_size < 1:
@@ -226,7 +221,7 @@ def _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay,
         log.info("resumed %s at step %d of %d", state_path, state["step"], steps)
 
     def checkpoint(step: int, wall: float) -> None:
-        _save_state(state_path, {
+        save_state(state_path, {
             "steps": steps, "seed": seed, "samples": n, "step": step, "model": model.state_dict(),
             "optimiser": opt.state_dict(), "schedule": sched.state_dict(), "generator": gen.get_state(),
             "torch_rng": torch.get_rng_state(), "perm": perm, "pos": pos, "history": history,
@@ -289,21 +284,6 @@ def evaluate(model: torch.nn.Module, loss_fn: Callable, data: torch.Tensor, chun
 
 
 # -- outputs ---------------------------------------------------------------------------------
-def _atomic_write(path: Path, write: Callable[[str], None]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; shipped files are world-readable
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def save_checkpoint(path: str | Path, state_dict: dict, config: dict) -> Path:
     """Write ``{"state_dict": ..., "config": ...}`` (CPU tensors, torch.save) atomically."""
     path = Path(path)
@@ -312,7 +292,7 @@ def save_checkpoint(path: str | Path, state_dict: dict, config: dict) -> Path:
     if bad:  # a diverged training, or weights out of range of their stored type (float16)
         raise FloatingPointError(f"{path}: not written: {', '.join(bad[:3])}{' ...' if len(bad) > 3 else ''} hold NaN or "
                                  "inf (the training diverged); train again with another --seed or fewer --steps")
-    _atomic_write(path, lambda tmp: torch.save(payload, tmp))
+    atomic_write(path, lambda tmp: torch.save(payload, tmp))
     return path
 
 
@@ -423,7 +403,7 @@ def write_record(path: str | Path, record: dict) -> Path:
         with open(tmp, "w") as f:
             f.write(text)
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
     return path
 
 

@@ -10,8 +10,11 @@ run (steps, seed, data) or holding non-finite numbers is refused with the file a
 from __future__ import annotations
 
 import math
+import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import torch
 
@@ -90,6 +93,28 @@ def check_finite(model: torch.nn.Module, step: int) -> None:
                 "with another --seed or fewer --steps (a resumable state saved before this step is kept)")
 
 
+def atomic_write(path: Path, write: Callable[[str], None]) -> None:
+    """Write ``path`` through ``write(tmp)`` on a temporary file beside it, then rename it into place
+    (the folder is created; a failed write leaves no file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    try:
+        write(tmp)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; shipped files are world-readable
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def save_state(path: Path, state: dict) -> None:
+    """Save a loop's state (the keys of :data:`STATE_KEYS`, and a recipe's own) atomically."""
+    atomic_write(path, lambda tmp: torch.save(state, tmp))
+
+
 def load_state(path: Path, steps: int, seed: int, n: int) -> dict:
     """The saved state of a loop of ``steps`` steps, seeded with ``seed``, over ``n`` samples; a
     ValueError naming the file and the fix when it cannot be continued."""
@@ -139,5 +164,5 @@ def restore(path: Path, state: dict, model: torch.nn.Module, opt, sched, gen: to
                          f"{' '.join(line.strip() for line in first[:3])}); {RESUME_FIX}") from None
 
 
-__all__ = ["TrainingSession", "training_session", "current_session", "saved_states", "check_finite", "load_state",
+__all__ = ["TrainingSession", "atomic_write", "save_state", "training_session", "current_session", "saved_states", "check_finite", "load_state",
            "restore", "STATE_KEYS"]
