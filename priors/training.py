@@ -337,11 +337,20 @@ def parse_recipe_args(ap, default_weights: Path, argv: list[str] | None = None):
     existing weights without ``--force`` (exit with the reason)."""
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    try:
-        embedded_out_dir(args.out, default_weights, args.force)
-    except FileExistsError as exc:
-        raise SystemExit(str(exc)) from None
+    check_recipe_out(args.out, [default_weights.name], args.force)
     return args
+
+
+def check_recipe_out(out: str | Path, checkpoint_names: list[str], force: bool) -> None:
+    """Before any data is built or step trained, for a recipe's command line: ``--out`` must be a
+    folder that can be created and written, and (without ``force``) hold none of the files the
+    training writes (:func:`refuse_overwrite`); else exit with the reason (exit code 1, no traceback)."""
+    from benchmark.core.outdir import check_out_dir
+
+    try:
+        refuse_overwrite(check_out_dir(out, min_free_bytes=1 << 20), checkpoint_names, force)
+    except (FileExistsError, ValueError) as exc:
+        raise SystemExit(f"error: {exc}") from None
 
 
 def save_trained(out_dir: str | Path, checkpoint_name: str, state_dict: dict, config: dict, record: dict) -> Path:

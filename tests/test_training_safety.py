@@ -144,3 +144,24 @@ def test_a_refused_train_leaves_no_state_folder(tmp_path, capsys):
     assert main(["train", "vposer-slerp", "--steps", "1", "--out", str(tmp_path)]) == 2
     assert "vposer.pt exists" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["vposer.pt"]
+
+
+def test_a_recipe_command_line_checks_its_out_before_training(tmp_path, monkeypatch, capsys):
+    """`python -m priors.vposer.train --out FILE` trained first and died with a traceback at the
+    write; `python -m priors.hmvae.train` over an existing record raised a FileExistsError traceback."""
+    import priors.hmvae.train as hmvae_train
+    import priors.vposer.train as vposer_train
+
+    def work(*a, **k):
+        raise AssertionError("training started before --out was checked")
+
+    monkeypatch.setattr(vposer_train, "train_vposer", work)
+    monkeypatch.setattr(hmvae_train, "train_embedded", work)
+    (tmp_path / "afile").write_text("mine")
+    (tmp_path / "hmvae.json").write_text("mine")
+    for main_, argv, says in ((vposer_train.main, ["--out", str(tmp_path / "afile")], "is a file, not a folder"),
+                              (hmvae_train.main, ["--out", str(tmp_path)], "hmvae.json exists")):
+        with pytest.raises(SystemExit) as info:
+            main_(argv + ["--steps", "1"])
+        assert str(info.value.code).startswith("error: ") and says in str(info.value.code)
+    assert (tmp_path / "afile").read_text() == "mine" and (tmp_path / "hmvae.json").read_text() == "mine"

@@ -350,6 +350,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--force", action="store_true", help="overwrite existing weights")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    training.check_recipe_out(args.out, ["hmvae.pt", "hmvae_trajectory.pt"], args.force)
     rec = train_embedded(args.out, steps=args.steps, seed=args.seed, overwrite=args.force, dataset=SyntheticTrainingData())
     for k, r in rec.items():
         print(k, {x: r[x] for x in ("train_wall_s", "seconds_per_step", "final_train", "final_val", "checkpoint_bytes")})
