@@ -18,10 +18,8 @@ import datetime as _dt
 import json
 import logging
 import math
-import os
 import platform
 import subprocess
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,8 +27,9 @@ from typing import Callable
 
 import torch
 
-from benchmark.core.safe_loading import UnsafeFileError, torch_load_weights
 from benchmark.core.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
+from priors.training_state import (TrainingSession, atomic_write, check_finite, current_session, load_state, restore,
+                                   save_state)
 
 log = logging.getLogger(__name__)
 
@@ -137,53 +136,6 @@ def fixed_rest_skeleton() -> tuple[torch.Tensor, str]:
 
 
 # -- the loop --------------------------------------------------------------------------------
-@dataclass
-class TrainingSession:
-    """Where a training run keeps its resumable state, set for the runs of a ``with`` block
-    (:func:`training_session`). Every :func:`train_loop` call of the block is numbered in call
-    order (a recipe that trains two networks makes two calls) and saves, every
-    ``checkpoint_every`` steps, its model, optimiser, schedule, batching generator, position in the
-    epoch, history and elapsed time to ``state_dir/loop<k>.pt`` (atomically). With ``resume``, a
-    call whose state file exists continues from it, and a call that had finished is replayed from
-    its final state without training; the result is the same as an uninterrupted run's (the batch
-    order and every update are restored exactly). ``val_every``: also log the validation loss every
-    that many steps (0: only at the end)."""
-
-    state_dir: Path
-    resume: bool = False
-    checkpoint_every: int = 200
-    val_every: int = 0
-    calls: int = 0
-
-    def state_path(self) -> Path:
-        path = self.state_dir / f"loop{self.calls}.pt"
-        self.calls += 1
-        return path
-
-
-_SESSION: TrainingSession | None = None
-
-
-class training_session:
-    """``with training_session(state_dir, resume=...):`` makes every :func:`train_loop` inside
-    checkpoint into ``state_dir`` and, with ``resume``, continue from it (:class:`TrainingSession`)."""
-
-    def __init__(self, state_dir: str | Path, resume: bool = False, checkpoint_every: int = 200, val_every: int = 0):
-        self.session = TrainingSession(Path(state_dir), resume, checkpoint_every, val_every)
-
-    def __enter__(self) -> TrainingSession:
-        global _SESSION
-        if _SESSION is not None:
-            raise RuntimeError("training_session: sessions do not nest")
-        self.session.state_dir.mkdir(parents=True, exist_ok=True)
-        _SESSION = self.session
-        return self.session
-
-    def __exit__(self, *exc) -> None:
-        global _SESSION
-        _SESSION = None
-
-
 def seed_everything(seed: int) -> torch.Generator:
     """Seed torch's global RNG (initialisation, dropout) and return a CPU generator for batching."""
     torch.manual_seed(seed)
@@ -234,33 +186,9 @@ def train_loop(
         torch.set_num_threads(num_threads)
     try:
         return _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay, final_lr_ratio, log_every,
-                           val_data, val_batch, _SESSION)
+                           val_data, val_batch, current_session())
     finally:
         torch.set_num_threads(old_threads)
-
-
-def _save_state(path: Path, state: dict) -> None:
-    _atomic_write(path, lambda tmp: torch.save(state, tmp))
-
-
-def _load_state(path: Path, steps: int, seed: int, n: int) -> dict:
-    fix = "delete it to train from the start, or rerun without --resume"
-    try:
-        # plain tensors, numbers, lists and dicts (optimiser and schedule state dicts included):
-        # weights_only=True reads all of it, and a file holding anything else is refused
-        state = torch_load_weights(path, fix)
-    except UnsafeFileError:
-        raise
-    except Exception as exc:
-        raise ValueError(f"{path}: unreadable training state ({type(exc).__name__}: {exc}); {fix}") from None
-    if not isinstance(state, dict):
-        raise ValueError(f"{path}: not a training state (a {type(state).__name__}, expected a dict); {fix}")
-    mine = {"steps": steps, "seed": seed, "samples": n}
-    theirs = {k: state.get(k) for k in mine}
-    if theirs != mine:
-        raise ValueError(f"{path}: saved by a different training run ({theirs}, this run {mine}); delete it or rerun "
-                         "without --resume")
-    return state
 
 
 def _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay, final_lr_ratio, log_every, val_data,
@@ -285,19 +213,15 @@ def _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay,
     final_train, start, before, saved = None, 1, 0.0, 0
     state_path = session.state_path() if session is not None else None
     if state_path is not None and session.resume and state_path.exists():
-        state = _load_state(state_path, steps, seed, n)
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimiser"])
-        sched.load_state_dict(state["schedule"])
-        gen.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
+        state = load_state(state_path, steps, seed, n)
+        restore(state_path, state, model, opt, sched, gen)
         perm, pos, history, final_train = state["perm"], state["pos"], state["history"], state["final_train"]
         start, before = state["step"] + 1, state["wall_s"]
         saved = state["step"]
         log.info("resumed %s at step %d of %d", state_path, state["step"], steps)
 
     def checkpoint(step: int, wall: float) -> None:
-        _save_state(state_path, {
+        save_state(state_path, {
             "steps": steps, "seed": seed, "samples": n, "step": step, "model": model.state_dict(),
             "optimiser": opt.state_dict(), "schedule": sched.state_dict(), "generator": gen.get_state(),
             "torch_rng": torch.get_rng_state(), "perm": perm, "pos": pos, "history": history,
@@ -312,7 +236,9 @@ def _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay,
         parts = loss_fn(model, batch)
         loss = parts["loss"]
         if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite training loss at step {step}: { {k: float(v) for k, v in parts.items()} }")
+            raise FloatingPointError(f"training diverged: non-finite training loss at step {step} "
+                                     f"({ {k: float(v) for k, v in parts.items()} }); no weights were written. Train again "
+                                     "with another --seed or fewer --steps")
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -331,10 +257,15 @@ def _train_loop(model, loss_fn, data, steps, batch_size, seed, lr, weight_decay,
         # at a log step (no partial window to save), once per checkpoint_every steps, and at the end
         if state_path is not None and not window and (step // session.checkpoint_every > saved // session.checkpoint_every
                                                       or step == steps):
+            check_finite(model, step)  # a diverged model is never saved as a state to continue from
             checkpoint(step, time.perf_counter() - t0)
             saved = step
     wall = time.perf_counter() - t0
+    check_finite(model, steps)  # the last update can turn the weights to NaN after a finite loss
     final_val = evaluate(model, loss_fn, val_data, val_batch) if val_data is not None else None
+    if final_val is not None and not all(math.isfinite(v) for v in final_val.values()):
+        raise FloatingPointError(f"training diverged: the validation loss after step {steps} is not finite ({final_val}); "
+                                 "no weights were written. Train again with another --seed or fewer --steps")
     return TrainResult(steps=steps, wall_s=wall, final_train=final_train, final_val=final_val, history=history)
 
 
@@ -353,38 +284,36 @@ def evaluate(model: torch.nn.Module, loss_fn: Callable, data: torch.Tensor, chun
 
 
 # -- outputs ---------------------------------------------------------------------------------
-def _atomic_write(path: Path, write: Callable[[str], None]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; shipped files are world-readable
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def save_checkpoint(path: str | Path, state_dict: dict, config: dict) -> Path:
     """Write ``{"state_dict": ..., "config": ...}`` (CPU tensors, torch.save) atomically."""
     path = Path(path)
     payload = {"state_dict": {k: v.detach().cpu().clone() for k, v in state_dict.items()}, "config": dict(config)}
-    _atomic_write(path, lambda tmp: torch.save(payload, tmp))
+    bad = [k for k, v in payload["state_dict"].items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:  # a diverged training, or weights out of range of their stored type (float16)
+        raise FloatingPointError(f"{path}: not written: {', '.join(bad[:3])}{' ...' if len(bad) > 3 else ''} hold NaN or "
+                                 "inf (the training diverged); train again with another --seed or fewer --steps")
+    atomic_write(path, lambda tmp: torch.save(payload, tmp))
     return path
 
 
 def embedded_out_dir(out_dir: str | Path | None, default_weights: Path, overwrite: bool) -> Path:
     """The folder a prior's ``train_embedded`` writes to: ``out_dir``, or by default the folder of
-    ``default_weights``; refuses (FileExistsError) when it already holds that checkpoint and
-    ``overwrite`` is false."""
+    ``default_weights``; refuses (FileExistsError) when it already holds that checkpoint or its
+    training record (:func:`refuse_overwrite`) and ``overwrite`` is false."""
     out = Path(out_dir) if out_dir is not None else default_weights.parent
-    target = out / default_weights.name
-    if target.exists() and not overwrite:
-        raise FileExistsError(f"{target} exists: pass --force to overwrite it, or --out DIR to write elsewhere")
+    refuse_overwrite(out, [default_weights.name], overwrite)
     return out
+
+
+def refuse_overwrite(out: Path, checkpoint_names: list[str], overwrite: bool) -> None:
+    """FileExistsError unless ``overwrite``, when ``out`` holds one of the files a training writes:
+    each checkpoint of ``checkpoint_names`` and its record (same stem, ``.json``: :func:`save_trained`)."""
+    names = [f for n in checkpoint_names for f in (n, Path(n).with_suffix(".json").name)]
+    existing = [str(Path(out) / n) for n in names if (Path(out) / n).exists()]
+    if existing and not overwrite:
+        them = "it" if len(existing) == 1 else "them"
+        raise FileExistsError(f"{', '.join(existing)} exist{'s' if len(existing) == 1 else ''} (a training writes "
+                              f"{', '.join(names)}): pass --force to overwrite {them}, or --out DIR to write elsewhere")
 
 
 def recipe_parser(description: str, default_weights: Path, steps: int, min_steps: int = 1):
@@ -408,11 +337,20 @@ def parse_recipe_args(ap, default_weights: Path, argv: list[str] | None = None):
     existing weights without ``--force`` (exit with the reason)."""
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    try:
-        embedded_out_dir(args.out, default_weights, args.force)
-    except FileExistsError as exc:
-        raise SystemExit(str(exc)) from None
+    check_recipe_out(args.out, [default_weights.name], args.force)
     return args
+
+
+def check_recipe_out(out: str | Path, checkpoint_names: list[str], force: bool) -> None:
+    """Before any data is built or step trained, for a recipe's command line: ``--out`` must be a
+    folder that can be created and written, and (without ``force``) hold none of the files the
+    training writes (:func:`refuse_overwrite`); else exit with the reason (exit code 1, no traceback)."""
+    from benchmark.core.outdir import check_out_dir
+
+    try:
+        refuse_overwrite(check_out_dir(out, min_free_bytes=1 << 20), checkpoint_names, force)
+    except (FileExistsError, ValueError) as exc:
+        raise SystemExit(f"error: {exc}") from None
 
 
 def save_trained(out_dir: str | Path, checkpoint_name: str, state_dict: dict, config: dict, record: dict) -> Path:
@@ -474,12 +412,13 @@ def write_record(path: str | Path, record: dict) -> Path:
         with open(tmp, "w") as f:
             f.write(text)
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
     return path
 
 
 __all__ = [
     "WEIGHTS_DIR",
+    "refuse_overwrite",
     "split_motions",
     "pose_frames",
     "fixed_rest_skeleton",

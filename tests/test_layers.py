@@ -55,8 +55,9 @@ MAY_IMPORT = {
     "commands": set(ORDER),
 }
 # what the harness (benchmark.*) may import of priors: the adapter API, the prior-free start of the
-# fits, the training helpers of the `train` command; every prior itself through benchmark.run.registry
-HARNESS_MAY_IMPORT_PRIORS = {"priors.base", "priors.no_prior", "priors.training"}
+# fits, the training helpers and resumable state of the `train` command; every prior itself through
+# benchmark.run.registry
+HARNESS_MAY_IMPORT_PRIORS = {"priors.base", "priors.no_prior", "priors.training", "priors.training_state"}
 # functions that are a command although their module is not: a recipe's command line
 ENTRY_POINTS = {"main"}
 
@@ -160,7 +161,7 @@ def test_a_priors_network_imports_no_training_code():
     wrong = [f"{_where(file, line)}: {name} imports {dep}"
              for name, file in sorted(modules.items()) if name.startswith("priors.") and name.endswith(".model")
              for dep, line, _, _ in imports_of(name, file, modules)
-             if dep == "priors.training" or dep.endswith(".train")]
+             if dep in ("priors.training", "priors.training_state") or dep.endswith(".train")]
     assert not wrong, "a network imports training code:\n" + "\n".join(wrong)
 
 

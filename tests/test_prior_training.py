@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from benchmark.core.skeleton import SMPL_LIKE_REST_JOINTS
-from priors import training
+from priors import training, training_state
 
 
 def _motion(T: int, offset: float):
@@ -94,7 +94,7 @@ def test_train_loop_resumes_exactly_after_an_interruption(tmp_path):
                 raise _Killed
             return loss_fn(model, batch)
 
-        with training.training_session(state_dir, resume=resume, checkpoint_every=40, val_every=50):
+        with training_state.training_session(state_dir, resume=resume, checkpoint_every=40, val_every=50):
             res = training.train_loop(model, loss, data, steps=150, batch_size=16, seed=0, lr=0.02, log_every=25,
                                       val_data=data)
         return model, res

@@ -206,13 +206,13 @@ def test_frequency_guided_official_pair_refuses_a_payload_in_either_file(tmp_pat
 
 
 def test_training_resume_state_refuses_a_payload(tmp_path, marker):
-    from priors import training
+    from priors import training, training_state
 
     state_dir = tmp_path / ".train_state" / "tiny"
     f = evil_checkpoint(state_dir / "loop0.pt", marker, steps=3, seed=0, samples=8)
     data = torch.randn(8, 2)
     with pytest.raises(UnsafeFileError) as err:
-        with training.training_session(state_dir, resume=True):
+        with training_state.training_session(state_dir, resume=True):
             training.train_loop(torch.nn.Linear(1, 1), lambda m, b: {"loss": m(b[:, :1]).square().mean()}, data,
                                 steps=3, batch_size=4, seed=0)
     assert_refused(err.value, f, marker)
@@ -222,10 +222,10 @@ def test_training_resume_state_refuses_a_payload(tmp_path, marker):
 def test_training_state_is_read_with_weights_only(tmp_path):
     """The resumable state holds only what weights_only=True reads (tensors, numbers, lists, dicts,
     optimiser and schedule state dicts)."""
-    from priors import training
+    from priors import training, training_state
 
     data = torch.randn(16, 2)
-    with training.training_session(tmp_path, checkpoint_every=2):
+    with training_state.training_session(tmp_path, checkpoint_every=2):
         training.train_loop(torch.nn.Sequential(torch.nn.Linear(1, 4), torch.nn.Linear(4, 1)),
                             lambda m, b: {"loss": (m(b[:, :1]) - b[:, 1:]).square().mean()}, data,
                             steps=4, batch_size=4, seed=0, log_every=2)

@@ -300,3 +300,39 @@ def test_onnx_export_parity(tmp_path):
     assert [o.shape for o in out] == [(3, 100, 22, 3, 3), (3, 100, 3), (3, 100)]
     for o, r in zip(out, ref):
         np.testing.assert_allclose(o, r.numpy(), rtol=1e-3, atol=1e-5)
+
+
+class _Killed(Exception):
+    """Stands for the process being killed mid-training."""
+
+
+def test_training_checkpoints_and_resumes_exactly(tmp_path, monkeypatch):
+    """`train structured-latent --resume` (it trains with its own two-phase loop): an interrupted
+    training continues from its last saved state and ends with the uninterrupted run's weights."""
+    from priors import training_state
+
+    motions = [_gait_motion(freq=f, duration=3.0, speed=s, seed=i) for i, (f, s) in enumerate([(1.0, 1.0), (1.4, 2.0)])]
+    data = build_anchor_data(motions, find_cycles=cyc.find_cycles, windows_s=(2.0,), window_stride_s=0.5)
+
+    def train(state_dir, resume=False):
+        with training_state.training_session(state_dir, resume=resume, checkpoint_every=5):
+            return train_structured_latent(None, steps=24, data=data, config=TINY, log_every=5, phase2_fraction=0.25,
+                                           batch1=8, batch2=8)[0]
+
+    full = train(tmp_path / "a")
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["loop0.pt", "loop1.pt"]  # one per phase
+    save, saves = training_state.save_state, []
+
+    def save_then_die(path, state):
+        save(path, state)
+        saves.append(state["step"])
+        if len(saves) == 2:
+            raise _Killed
+
+    monkeypatch.setattr(training_state, "save_state", save_then_die)
+    with pytest.raises(_Killed):
+        train(tmp_path / "b")  # killed after phase 1's state at step 10
+    monkeypatch.undo()
+    resumed = train(tmp_path / "b", resume=True)
+    for k, v in full.state_dict().items():
+        assert torch.equal(resumed.state_dict()[k], v), k

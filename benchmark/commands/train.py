@@ -21,17 +21,27 @@ def _cmd_train(args) -> int:
                          "no train_embedded classmethod)")
     out = Path(args.out) if args.out is not None else None
     from benchmark.synthetic.train_data import SyntheticTrainingData
-    from priors.training import WEIGHTS_DIR, training_session
+    from priors.training import WEIGHTS_DIR
+    from priors.training_state import saved_states, training_session
 
     # the weights folder first: a wrong --out fails in a second, not after hours of training
     check_out_dir(out if out is not None else WEIGHTS_DIR, min_free_bytes=1 << 20,
                   what="--out" if out is not None else "the weights folder")
 
-    # every loop of the recipe checkpoints here; --resume continues from it (priors/training.py)
+    # every loop of the recipe checkpoints here; --resume continues from it (priors/training_state.py)
     state_dir = (out or WEIGHTS_DIR) / ".train_state" / args.name
-    if args.resume and not state_dir.exists():
+    states = saved_states(state_dir)
+    if args.resume and not states:
         raise FileNotFoundError(f"train {args.name} --resume: no training state in {state_dir}; start the training "
                                 f"without --resume (it checkpoints every {args.checkpoint_every} steps)")
+    if states and not args.resume:
+        # hours of training are not thrown away because --resume was forgotten
+        if not args.force:
+            raise FileExistsError(f"{state_dir} holds the state of an earlier training of {args.name} "
+                                  f"({', '.join(p.name for p in states)}): pass --resume to continue it, or --force to "
+                                  "start over (the state is replaced)")
+        for p in states:  # starting over: no loop may later be replayed from the earlier run
+            p.unlink()
     with training_session(state_dir, resume=args.resume, checkpoint_every=args.checkpoint_every,
                           val_every=args.val_every):
         # the training data: the synthetic splits, handed to the recipe (priors never build data)
@@ -50,7 +60,8 @@ def add_command(sub) -> None:
     p.add_argument("--steps", type=at.positive_int, default=None, help="training steps (default: the recipe's)")
     p.add_argument("--seed", type=at.seed, default=0)
     p.add_argument("--out", default=None, help="output folder (default: priors/weights)")
-    p.add_argument("--force", action="store_true", help="overwrite existing weights")
+    p.add_argument("--force", action="store_true",
+                   help="overwrite existing weights and records, and start over from an earlier training's state")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted training from its last checkpoint (OUT/.train_state/NAME; add --force when "
                         "the weights file exists)")

@@ -327,10 +327,7 @@ def train_embedded(out_dir=None, steps: int | None = None, seed: int = 0, overwr
     steps; the trajectory model's scale with it (default 12000 and 4800: the committed weights). Refuses to overwrite
     existing files unless ``overwrite``."""
     out = Path(out_dir) if out_dir is not None else training.WEIGHTS_DIR
-    targets = [out / n for n in ("hmvae.pt", "hmvae_trajectory.pt")]
-    existing = [str(t) for t in targets if t.exists()]
-    if existing and not overwrite:
-        raise FileExistsError(f"{existing} exist: pass --force to overwrite them, or --out DIR to write elsewhere")
+    training.refuse_overwrite(out, ["hmvae.pt", "hmvae_trajectory.pt"], overwrite)
     vae_steps = VAE_STEPS if steps is None else int(steps)
     traj_steps = max(1, round(vae_steps * TRAJ_STEPS / VAE_STEPS))
     rest = training.fixed_rest_skeleton()[0]
@@ -353,6 +350,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--force", action="store_true", help="overwrite existing weights")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    training.check_recipe_out(args.out, ["hmvae.pt", "hmvae_trajectory.pt"], args.force)
     rec = train_embedded(args.out, steps=args.steps, seed=args.seed, overwrite=args.force, dataset=SyntheticTrainingData())
     for k, r in rec.items():
         print(k, {x: r[x] for x in ("train_wall_s", "seconds_per_step", "final_train", "final_val", "checkpoint_bytes")})

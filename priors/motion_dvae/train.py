@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from benchmark.core.skeleton import NUM_JOINTS
-from priors import training
+from priors import training, training_state
 from priors.motion_dvae.model import (
     EMBEDDED_CONFIG,
     KL_ANNEAL_FRACTION,
@@ -395,8 +395,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.resume and not (args.checkpoint_dir and Path(args.checkpoint_dir).exists()):
         raise SystemExit(f"--resume: no training state in --checkpoint-dir {args.checkpoint_dir!r}; start the training "
                          f"with --checkpoint-dir DIR (and without --resume) first")
-    ctx = (training.training_session(args.checkpoint_dir, resume=args.resume, checkpoint_every=args.checkpoint_every,
-                                     val_every=500) if args.checkpoint_dir else contextlib.nullcontext())
+    ctx = (training_state.training_session(args.checkpoint_dir, resume=args.resume,
+                                           checkpoint_every=args.checkpoint_every, val_every=500) if args.checkpoint_dir else contextlib.nullcontext())
     with ctx:
         _, rec = train_motion_dvae(args.out, steps=args.steps, denoise_steps=args.denoise_steps, seed=args.seed,
                                    init_weights=args.init, lr=args.lr, denoise_lr=args.denoise_lr,

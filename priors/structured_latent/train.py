@@ -64,6 +64,7 @@ from benchmark.body.lbs import forward_kinematics
 from benchmark.core.interpolate import resample_intervals
 from benchmark.core.rotations import matrix_to_sixd
 from benchmark.core.skeleton import NUM_JOINTS, SMPL_LIKE_REST_JOINTS
+from priors import training_state
 from priors.structured_latent.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_NAME
 from priors.structured_latent.gradnorm import GradNorm
 from priors.structured_latent.model import EMBEDDED_CONFIG, StructuredLatentCVAE, kl_divergence
@@ -285,9 +286,24 @@ def _run_phase(model, data, *, terms, loss_fn, steps, batch_size, lr, kl_weight,
     model.train()
     perm, pos = torch.randperm(N, generator=gen), 0
     history, window = [], []
-    final = {}
-    t0 = time.perf_counter()
-    for step in range(1, steps + 1):
+    final, start, before, saved = {}, 1, 0.0, 0
+    # `train structured-latent --resume`: each phase is a loop of the session (priors/training_state.py)
+    session = training_state.current_session()
+    state_path = session.state_path() if session is not None else None
+    if state_path is not None and session.resume and state_path.exists():
+        state = training_state.load_state(state_path, steps, seed, N)
+        training_state.restore(state_path, state, model, opt, sched, gen)
+        try:
+            gn.load_state_dict(state["gradnorm"])
+            gn.optimizer.load_state_dict(state["gradnorm_optimiser"])
+        except (KeyError, RuntimeError, ValueError) as exc:
+            raise ValueError(f"{state_path}: no usable GradNorm state ({type(exc).__name__}); "
+                             f"{training_state.RESUME_FIX}") from None
+        perm, pos, history, final = state["perm"], state["pos"], state["history"], state["final_train"]
+        start, before, saved = state["step"] + 1, state["wall_s"], state["step"]
+        log.info("%s: resumed %s at step %d of %d", label, state_path, saved, steps)
+    t0 = time.perf_counter() - before
+    for step in range(start, steps + 1):
         if pos + batch_size > N:
             perm, pos = torch.randperm(N, generator=gen), 0
         idx = perm[pos : pos + batch_size]
@@ -309,6 +325,17 @@ def _run_phase(model, data, *, terms, loss_fn, steps, batch_size, lr, kl_weight,
             history.append({"step": step, **final})
             log.info("%s step %d/%d %s", label, step, steps, " ".join(f"{k}={v:.4g}" for k, v in final.items()))
             window = []
+        if state_path is not None and not window and (step // session.checkpoint_every > saved // session.checkpoint_every
+                                                      or step == steps):
+            training_state.check_finite(model, step)
+            training_state.save_state(state_path, {
+                "steps": steps, "seed": seed, "samples": N, "step": step, "model": model.state_dict(),
+                "optimiser": opt.state_dict(), "schedule": sched.state_dict(), "generator": gen.get_state(),
+                "torch_rng": torch.get_rng_state(), "perm": perm, "pos": pos, "history": history, "final_train": final,
+                "wall_s": time.perf_counter() - t0, "gradnorm": gn.state_dict(),
+                "gradnorm_optimiser": gn.optimizer.state_dict()})
+            saved = step
+    training_state.check_finite(model, steps)
     wall = time.perf_counter() - t0
     return {"steps": steps, "batch_size": batch_size, "lr": lr, "wall_s": round(wall, 2),
             "s_per_step": round(wall / max(steps, 1), 4), "final_train": final, "history": history,
