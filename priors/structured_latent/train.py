@@ -454,7 +454,24 @@ def train_structured_latent(out_dir=None, steps: int | None = None, seed: int = 
     return model, record
 
 
+def main(argv: list[str] | None = None) -> None:
+    """``python -m priors.structured_latent.train --out priors/weights``: train the embedded weights."""
+    from benchmark.synthetic.train_data import SyntheticTrainingData
+    from priors import training
+    from priors.structured_latent.checkpoint import DEFAULT_WEIGHTS
+
+    ap = training.recipe_parser("Train the embedded structured latent space on the synthetic training split.",
+                                DEFAULT_WEIGHTS, DEFAULT_STEPS)
+    args = training.parse_recipe_args(ap, DEFAULT_WEIGHTS, argv)
+    _, rec = train_structured_latent(args.out, steps=args.steps, seed=args.seed, dataset=SyntheticTrainingData())
+    print({k: rec.get(k) for k in ("train_wall_s", "final_train", "final_val", "checkpoint_bytes")})
+
+
 __all__ = [
     "RECORD_NAME", "DEFAULT_STEPS", "PHASE2_FRACTION", "TRAIN_DEFAULTS", "build_anchor_data", "finalise",
     "mesh_points", "phase1_losses", "phase2_losses", "evaluate", "train_structured_latent",
 ]
+
+
+if __name__ == "__main__":
+    main()
