@@ -191,3 +191,22 @@ def test_every_recipe_has_its_command_line(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit) as info:
         sl_train.main(["--out", str(tmp_path / "afile"), "--steps", "1"])
     assert "is a file, not a folder" in str(info.value.code) and (tmp_path / "afile").read_text() == "mine"
+
+
+def test_an_interrupted_training_says_how_to_resume(tmp_path, monkeypatch, capsys):
+    """Ctrl-C in a training printed only "interrupted"; it now names the kept state and the command."""
+    from priors.vposer import adapter
+
+    def train_embedded(cls, **kw):
+        if kw.get("steps") == 2:  # a checkpoint was written, then Ctrl-C
+            (tmp_path / ".train_state" / "vposer-slerp").mkdir(parents=True, exist_ok=True)
+            (tmp_path / ".train_state" / "vposer-slerp" / "loop0.pt").write_bytes(b"state")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(adapter.VPoserSlerp, "train_embedded", classmethod(train_embedded))
+    assert main(["train", "vposer-slerp", "--steps", "1", "--out", str(tmp_path)]) == 130
+    assert "stopped before its first checkpoint (every 200 steps); nothing to resume" in capsys.readouterr().err
+    assert main(["train", "vposer-slerp", "--steps", "2", "--seed", "3", "--out", str(tmp_path)]) == 130
+    err = capsys.readouterr().err
+    assert "the training state is kept in" in err and "(loop0.pt)" in err
+    assert f"`python -m benchmark train vposer-slerp --steps 2 --seed 3 --out {tmp_path} --resume` continues it" in err

@@ -42,11 +42,24 @@ def _cmd_train(args) -> int:
                                   "start over (the state is replaced)")
         for p in states:  # starting over: no loop may later be replayed from the earlier run
             p.unlink()
-    with training_session(state_dir, resume=args.resume, checkpoint_every=args.checkpoint_every,
-                          val_every=args.val_every):
-        # the training data: the synthetic splits, handed to the recipe (priors never build data)
-        record = cls.train_embedded(out_dir=out, steps=args.steps, seed=args.seed, overwrite=args.force,
-                                    dataset=SyntheticTrainingData())
+    try:
+        with training_session(state_dir, resume=args.resume, checkpoint_every=args.checkpoint_every,
+                              val_every=args.val_every):
+            # the training data: the synthetic splits, handed to the recipe (priors never build data)
+            record = cls.train_embedded(out_dir=out, steps=args.steps, seed=args.seed, overwrite=args.force,
+                                        dataset=SyntheticTrainingData())
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: say what is kept and how to go on
+        import sys
+
+        kept = saved_states(state_dir)
+        again = f"python -m benchmark train {args.name}" + "".join(
+            f" {flag} {value}" for flag, value in (("--steps", args.steps), ("--seed", args.seed), ("--out", args.out))
+            if value is not None)
+        print(f"train {args.name}: the training state is kept in {state_dir} ({', '.join(p.name for p in kept)}); "
+              f"`{again} --resume` continues it" if kept else
+              f"train {args.name}: stopped before its first checkpoint (every {args.checkpoint_every} steps); nothing "
+              "to resume", file=sys.stderr)
+        raise
     print(record)
     return 0
 

@@ -272,7 +272,7 @@ def _complete(args, out: Path, earlier: list[str], t_begin: float) -> dict:
         change = c["plateau_decrease"]
         shown = "n/a (the cap is below the rule's least steps)" if change is None else f"{100 * change:.2f}%"
         print(f"convergence: {c['data_mm_first']:.2f} -> {c['data_mm_last']:.2f} mm in {c['steps']} steps; objective "
-              f"change over the plateau window at the constant learning rate {shown} "
+              f"change over the plateau window at the fit's last (reduced) learning rate {shown} "
               f"({'converged' if c['converged'] else 'not converged within the step cap: raise it (--steps, --profile full)'})")
     elif c["data_decrease_last10"] is None:
         print(f"convergence: {c['data_mm_first']:.2f} -> {c['data_mm_last']:.2f} mm; one step: nothing to judge "
