@@ -309,6 +309,40 @@ def test_build_split_cache_roundtrip_and_rebuild(tmp_path, monkeypatch):
     assert content_digest(Motion.load(victim)) == content_digest(first[0])
 
 
+def test_two_processes_asking_for_an_unbuilt_split_build_it_once(tmp_path, monkeypatch):
+    """`run table1` and `run sls` started together on a fresh checkout both built the test split into
+    one folder, each deleting and rewriting the files the other was writing. The second now waits
+    for the first and reads what it built (an flock; two threads hold separate open files, as two
+    processes do)."""
+    import threading
+    import time
+
+    _tiny_split(monkeypatch)
+    real = splits_mod.generate_split
+    calls = []
+
+    def slow(*a, **k):
+        calls.append(threading.get_ident())
+        time.sleep(0.5)  # the other thread arrives while this one builds
+        return real(*a, **k)
+
+    monkeypatch.setattr(splits_mod, "generate_split", slow)
+    results = [None, None]
+
+    def ask(i):
+        results[i] = build_split("tiny", body=CANON, root=tmp_path)
+
+    threads = [threading.Thread(target=ask, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+        time.sleep(0.1)
+    for t in threads:
+        t.join()
+    assert len(calls) == 1
+    assert [content_digest(m) for m in results[0]] == [content_digest(m) for m in results[1]]
+    assert (tmp_path / ".tiny.lock").exists() and json.loads((tmp_path / "tiny" / "manifest.json").read_text())["count"] == 2
+
+
 def test_plan_errors_name_the_problem():
     with pytest.raises(ValueError, match="contiguous"):
         SequencePlan(SUBJECT, [Segment("walk", 0, 1.0), Segment("run", 1.2, 2.0)], seed=0)

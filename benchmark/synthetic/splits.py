@@ -217,8 +217,45 @@ def build_split(
     }
     problem = "rebuild requested" if rebuild else _manifest_problem(folder, expected)
     if problem is None:
-        manifest = json.loads((folder / "manifest.json").read_text())
-        return [Motion.load(folder / e["file"]) for e in manifest["files"]]
+        return _load_cached(folder)
+    with _build_lock(folder):  # one build at a time: another process asking for the split waits for it
+        problem = "rebuild requested" if rebuild else _manifest_problem(folder, expected)
+        if problem is None:  # built by the process we waited for
+            return _load_cached(folder)
+        return _build_into(folder, name, source, seed, spec, expected, problem)
+
+
+def _load_cached(folder: Path) -> list[Motion]:
+    manifest = json.loads((folder / "manifest.json").read_text())
+    return [Motion.load(folder / e["file"]) for e in manifest["files"]]
+
+
+@contextmanager
+def _build_lock(folder: Path):
+    """Held while a split is built into ``folder``: a second process (``run table1`` and ``run sls``
+    started together on a fresh checkout) waits, then reads what the first built, instead of
+    deleting and rewriting the files the first is writing. An advisory lock (``fcntl.flock``,
+    released by the system if the holder dies) on ``.<split>.lock`` beside the folder; where the
+    system has none (Windows), builds are not serialised."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with open(folder.parent / f".{folder.name}.lock", "a+") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.warning("synthetic split %s: another process is building it; waiting for it", folder.name)
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def _build_into(folder: Path, name: str, source, seed: int, spec, expected: dict, problem: str) -> list[Motion]:
     foreign = _foreign_files(folder, name)
     if foreign:
         shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
