@@ -50,10 +50,12 @@ def smoke_table(request, tmp_path_factory, anny_body):
 
 
 def test_smoke_table_is_complete(smoke_table):
-    table, _, spec = smoke_table
+    table, out, spec = smoke_table
+    n_cells = len(spec["grid"]["points"]) * len(spec["grid"]["fps"])
+    # a local run keeps each cell's prior-free start and facing search for its other workers and a resumption
+    assert len(list((out / "cache" / "starts").glob("*.pt"))) == 2 * n_cells
     rows = [r["prior"] for r in table["rows"]]
     assert {"no-prior", "vposer-slerp"} <= set(rows) and set(rows) <= set(PRIORS), rows
-    n_cells = len(spec["grid"]["points"]) * len(spec["grid"]["fps"])
     for row in table["rows"]:
         assert len(row["cells"]) == n_cells
         for cell in row["cells"]:

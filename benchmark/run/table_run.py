@@ -138,7 +138,8 @@ class TableExecutor:
     class). ``unit_cost`` lets a parallel backend order units longest-first.
     """
 
-    def __init__(self, protocol, spec: dict, profile: dict, adapters: dict, body, source, device):
+    def __init__(self, protocol, spec: dict, profile: dict, adapters: dict, body, source, device,
+                 start_cache_folder: Path | None = None):
         self.protocol = protocol
         self.spec = spec
         self.profile = profile
@@ -147,6 +148,8 @@ class TableExecutor:
         self.source = source
         self.device = device
         self.start_cache = None  # (folder, namespace): the prior-free searches on disk (use_start_cache)
+        if start_cache_folder is not None:
+            self.use_start_cache(start_cache_folder)
 
     def use_start_cache(self, folder: Path) -> None:
         """Keep the prior-free searches (facing, limb start) in ``folder``, for the run's other workers
@@ -225,9 +228,9 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     units = plan_units(spec, profile, priors, ids, seed, device, prior_info, data_hashes=data_hashes,
                        threads=backend_threads(run_backend))
     source = protocol.make_source(spec, body, motions, seed)
-    execute = TableExecutor(protocol, spec, profile, adapters, body, source, device)
-    if backend != "ray":  # Ray's workers may not share this disk
-        execute.use_start_cache(Path(out_dir) / Path(*START_CACHE_FOLDER))
+    # the prior-free searches on disk, for the other workers and a resumed run (Ray's workers may not share this disk)
+    starts = None if backend == "ray" else Path(out_dir) / Path(*START_CACHE_FOLDER)
+    execute = TableExecutor(protocol, spec, profile, adapters, body, source, device, starts)
 
     report = run_units(units, execute, out_dir, resume=resume, backend=run_backend,
                        carry=lambda unit: protocol.carry_problem(spec))
