@@ -172,3 +172,15 @@ def test_a_local_table_run_keeps_its_starts_in_its_out_folder(tmp_path):
     assert namespace({**spec, "protocol_version": spec["protocol_version"] + 1}) != same
     assert namespace({**spec, "objective": {**spec["objective"], "lr": 0.5}}) != same  # another rule
     assert namespace(spec, type("B", (), {"name": "smpl"})()) != same  # another body
+
+
+def test_resume_never_forgets_the_stored_starts_and_nothing_else(tmp_path):
+    from benchmark.protocols.start_cache import forget_starts
+
+    assert forget_starts(tmp_path / "absent") == 0
+    with use_start_cache(tmp_path, "run"):
+        stored = start_cache.write(("k",), {}, yaw=torch.zeros(1))
+    (tmp_path / "notes.txt").write_text("mine")
+    (tmp_path / "mine.pt").write_bytes(b"mine")
+    assert stored.exists() and forget_starts(tmp_path) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.pt", "notes.txt"]

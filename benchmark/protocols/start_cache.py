@@ -25,6 +25,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -45,6 +46,19 @@ def start_namespace(identity: dict) -> str:
     """What every stored start of a run depends on besides its key: ``identity`` (JSON-able: the
     table, its protocol version and rules, the body) and torch's version."""
     return hashlib.sha256(json.dumps({**identity, "torch": torch.__version__}, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def forget_starts(folder) -> int:
+    """Remove the starts stored in ``folder`` (the files this module writes there, nothing else), so
+    that a run asked to compute everything again (``run --resume never``) searches again too.
+    Returns how many were removed."""
+    path = Path(folder)
+    if not path.is_dir():
+        return 0
+    ours = [p for p in path.iterdir() if p.is_file() and re.fullmatch(r"[0-9a-f]{64}\.pt", p.name)]
+    for p in ours:
+        p.unlink()
+    return len(ours)
 
 
 @contextmanager

@@ -194,7 +194,7 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     from benchmark.run.writers import format_markdown, write_table
 
     from benchmark.run.same_cells import same_cells
-    from benchmark.protocols.start_cache import START_CACHE_FOLDER
+    from benchmark.protocols.start_cache import START_CACHE_FOLDER, forget_starts
 
     protocol = table_protocol(spec)
     same_cells(spec)  # a malformed same_cells entry fails here, not when the table is derived after every unit
@@ -230,6 +230,8 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
     source = protocol.make_source(spec, body, motions, seed)
     # the prior-free searches on disk, for the other workers and a resumed run (Ray's workers may not share this disk)
     starts = None if backend == "ray" else Path(out_dir) / Path(*START_CACHE_FOLDER)
+    if resume == "never" and forget_starts(Path(out_dir) / Path(*START_CACHE_FOLDER)):
+        log.info("--resume never: the stored prior-free starts are searched again")
     execute = TableExecutor(protocol, spec, profile, adapters, body, source, device, starts)
 
     report = run_units(units, execute, out_dir, resume=resume, backend=run_backend,
