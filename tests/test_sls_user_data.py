@@ -122,3 +122,19 @@ def test_each_motion_left_out_is_named_with_its_reason(monkeypatch, caplog):
     with pytest.raises(ValueError, match=r"--data /data/mine: sls found no usable motion cycle .*short\.npz \(lasts "
                                          r"0\.37 s .*still\.npz \(no joint moves"):
         _load(monkeypatch, {k: motions[k] for k in ("still.npz", "short.npz")})
+
+
+def test_user_subjects_of_any_json_kind_are_selected_from(monkeypatch):
+    # a user file's meta {"subject": 3} beside one without a subject raised TypeError (str < int),
+    # a record {"name": ...} "unhashable type: 'dict'"
+    from benchmark.core.work_units import select_sequences
+
+    def motion(subject):
+        m = walk(seconds=1.0)
+        return Motion(poses=m.poses, trans=m.trans, timestamps=m.timestamps, meta=subject)
+
+    motions = {"a.npz#c0": motion({"subject": 3}), "b.npz#c0": motion({}), "c.npz#c0": motion({"subject": {"name": "x"}}),
+               "d.npz#c0": motion({"subject": 3}), "e.npz#c0": motion({"subject": "s1"})}
+    assert select_sequences(motions, 4) == ["a.npz#c0", "b.npz#c0", "c.npz#c0", "e.npz#c0"]
+    synthetic = {f"m{i}": motion({"subject": s}) for i, s in enumerate(["f1", "f1", "m1", "m2", "m2", "m2"])}
+    assert select_sequences(synthetic, 3) == ["m0", "m2", "m3"]  # string subjects: as before
