@@ -444,13 +444,14 @@ def load_unit_results(out_dir: str | os.PathLike, units: Iterable[WorkUnit]) -> 
 
 # -- what the protocols and the runner share about a unit -------------------------------------------
 def select_sequences(motions_by_id: dict, count) -> list[str]:
-    """A deterministic selection spread evenly over subjects (round robin over sorted ids)."""
+    """A deterministic selection spread evenly over subjects (meta "subject"; a non-string one by its JSON)."""
     ids = sorted(motions_by_id)
     if count == "all" or count is None or int(count) >= len(ids):
         return ids
     groups = defaultdict(list)
     for sid in ids:
-        groups[motions_by_id[sid].meta.get("subject", "")].append(sid)
+        s = motions_by_id[sid].meta.get("subject", "")
+        groups[s if isinstance(s, str) else canonical_json(s)].append(sid)
     # spread within each subject too: take evenly spaced sequences
     n = int(count)
     order = sorted(groups)

@@ -9,9 +9,12 @@ Data (:func:`load_motions`, :class:`~benchmark.protocols.sls_data.SlsData`)
     ``data.anchors`` = 100 *anchor frames* uniformly spaced in time, both ends included (tau_i =
     i * D / 99, relative to the cycle start): ``benchmark.synthetic.cycles.cycle_windows`` (the
     generator's phase; gait strides start at the phase offsets ``data.gait_starts``, default the
-    left foot strike only, so one motion's cycles never overlap) when importable, else
-    :func:`~benchmark.protocols.sls_cycles.fallback_cycles` (its docstring). Cycles of
-    ``cycle_min_s``..``cycle_max_s`` seconds are kept,
+    left foot strike only, so one motion's cycles never overlap) for a motion whose meta holds the
+    generator's plan, else (``--data``)
+    :func:`~benchmark.protocols.sls_cycles.fallback_cycles` (its docstring: a motion that does not
+    repeat gives no cycle). A cycle across a hole in the timestamps or a teleport of the root is
+    left out (:func:`~benchmark.protocols.sls_cycles.cycle_defect`), and every motion or cycle left
+    out is named with its reason. Cycles of ``cycle_min_s``..``cycle_max_s`` seconds are kept,
     at most ``data.cycles_per_motion`` per motion (cycle_windows: a subset drawn with its seed 0,
     fixed, so the test sequences never depend on the table seed). Each cycle is rigidly aligned
     as the paper aligned CHUM segments at t = 0 (``data.align: first_anchor``): a yaw about +y
@@ -130,8 +133,9 @@ def load_motions(spec: dict, data: str | None, body) -> dict:
     motions = source_motions(data, body)
     ids = sorted(motions)
     A = int(d["anchors"])
+    left_out: dict = {}
     cycles, cutter = cut_cycles([motions[i] for i in ids], A, float(d["cycle_min_s"]), float(d["cycle_max_s"]),
-                                int(d.get("cycles_per_motion", 1)), tuple(d.get("gait_starts", (0.0,))))
+                                int(d.get("cycles_per_motion", 1)), tuple(d.get("gait_starts", (0.0,))), skipped=left_out)
     out = {}
     skipped = []
     for sid, cs in zip(ids, cycles):
@@ -143,19 +147,30 @@ def load_motions(spec: dict, data: str | None, body) -> dict:
             if d.get("align") == "first_anchor":
                 w = align_first_anchor(w)
             cid = f"{sid}#c{k}"
-            meta = {**dict(w.meta), "cycle": {**dict(w.meta.get("cycle", {})), "cutter": cutter}}
+            cyc = dict(w.meta.get("cycle", {}))
+            meta = {**dict(w.meta), "cycle": {**cyc, "cutter": cyc.get("cutter", cutter)}}
             out[cid] = dataclasses.replace(w, source=cid, meta=meta)
+    reasons = {ids[k]: "; ".join(r) for k, r in sorted(left_out.items())}
+    dropped = [sid for sid in reasons if sid not in skipped]
+    for sid in dropped:  # a motion that kept some cycles: the ones left out, with their reasons
+        log.warning("sls: %s: left out %s", sid, reasons[sid])
     if skipped:
-        log.warning("sls: %d motions have no motion cycle of %s-%s s and are left out: %s", len(skipped),
-                    d["cycle_min_s"], d["cycle_max_s"], skipped[:5])
+        log.warning("sls: %d of %d motions have no usable motion cycle of %s-%s s and are left out: %s", len(skipped),
+                    len(ids), d["cycle_min_s"], d["cycle_max_s"], _named(skipped, reasons, 10))
     if not out:
         where = f"--data {data}" if data is not None else "the synthetic test split"
-        raise ValueError(f"{where}: sls found no motion cycle of {d['cycle_min_s']}-{d['cycle_max_s']} s in any of its "
-                         f"{len(ids)} motions ({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''}; cutter: {cutter}); "
+        raise ValueError(f"{where}: sls found no usable motion cycle of {d['cycle_min_s']}-{d['cycle_max_s']} s in any "
+                         f"of its {len(ids)} motions ({_named(ids, reasons, 3)}; cutter: {cutter}); "
                          "sls completes one-cycle sequences: give motions that repeat a movement (walking, running) "
                          "with at least one whole cycle, or run another table on these motions")
     log.info("sls: %d one-cycle sequences from %d motions (%s)", len(out), len(ids), cutter)
     return out
+
+
+def _named(ids: list, reasons: dict, n: int) -> str:
+    """The first ``n`` motions, each with its reason, then how many more."""
+    text = "; ".join(f"{sid} ({reasons[sid]})" if sid in reasons else sid for sid in ids[:n])
+    return text + (f"; and {len(ids) - n} more" if len(ids) > n else "")
 
 
 def source_motions(data: str | None, body) -> dict:

@@ -10,6 +10,14 @@ motion must be periodic (d(L) < 0.5). Cycle boundaries are the local minima of t
 on its first principal direction that are the lowest within +-0.3 L (interior frames only);
 consecutive boundaries 0.85 L to 1.15 L apart whose poses agree (|x(t1) - x(t0)|^2 / (2 var x) <=
 max(0.1, 3 d(L))) make a cycle. Frame-quantised (20 ms at 50 fps).
+
+Which cutter: a motion whose meta holds the generator's plan (the synthetic splits) is cut by
+``benchmark.synthetic.cycles.cycle_windows`` on that plan's gait phase; every other motion (``--data``)
+by :func:`fallback_cycles`, whose period and pose-closure checks keep a motion that does not repeat
+from yielding a "cycle". Either way a cycle is left out, with its reason (:func:`cycle_defect`), when
+it spans a hole in the timestamps (an interval more than ``GAP_RATIO`` times the motion's median
+frame interval: frames are missing and the anchors would be interpolated across them) or a root
+step faster than ``MAX_ROOT_SPEED`` m/s (a teleport: a glitch or two takes joined; no body moves so).
 """
 
 from __future__ import annotations
@@ -22,25 +30,35 @@ import torch
 
 from benchmark.core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
+GAP_RATIO = 2.5  # a frame interval this many times the median one is a hole (one dropped frame is 2x)
+MAX_ROOT_SPEED = 20.0  # m/s between two frames; a sprinter peaks near 12, the synthetic splits under 8
+FALLBACK = "sls.fallback_cycles (pose-signal period and principal-component minima)"
+PLAN = "benchmark.synthetic.cycles.cycle_windows"
 
-def fallback_cycles(motion, min_s: float = 0.3, max_s: float = 3.0, max_cycles: int | None = None) -> list[tuple[float, float]]:
+
+def fallback_cycles(motion, min_s: float = 0.3, max_s: float = 3.0, max_cycles: int | None = None,
+                    why: list | None = None) -> list[tuple[float, float]]:
     """One-cycle windows [(t0, t1), ...] (seconds, the motion's own clock) found from the pose
-    signal alone (see the module docstring). Empty when the motion is not periodic."""
+    signal alone (see the module docstring). Empty when the motion is not periodic; then ``why``
+    (a list), when given, receives the reason."""
     poses = torch.as_tensor(motion.poses, dtype=torch.float64)
     ts = torch.as_tensor(motion.timestamps, dtype=torch.float64)
     T = poses.shape[0]
+    span = float(ts[-1] - ts[0]) if T > 1 else 0.0
+    too_short = (f"lasts {span:.2f} s ({T} frames): telling a cycle of at least {min_s:g} s needs two of them "
+                 f"and a few frames more")
     if T < 4:
-        return []
-    fps = (T - 1) / float(ts[-1] - ts[0])
+        return _none(why, too_short)
+    fps = (T - 1) / span
     x = axis_angle_to_matrix(poses[:, 1:]).reshape(T, -1)
     x = x - x.mean(0)
     var = float(x.square().sum(1).mean())
     if var < 1e-8:
-        return []
+        return _none(why, "no joint moves (one pose throughout): there is no cycle to cut")
     lo = max(1, math.ceil(min_s * fps - 1e-9))
     hi = min(int(math.floor(max_s * fps + 1e-9)), T // 2)
     if hi < lo + 2:
-        return []
+        return _none(why, too_short)
     lags = torch.arange(lo - 1, hi + 2)
     d = torch.stack([(x[int(L):] - x[: T - int(L)]).square().sum(1).mean() for L in lags.clamp_min(1)]) / (2 * var)
     inner = d[1:-1]
@@ -48,7 +66,8 @@ def fallback_cycles(motion, min_s: float = 0.3, max_s: float = 3.0, max_cycles: 
     thr = float(inner.min()) + 0.2 * float(inner.max() - inner.min())
     cand = torch.nonzero(local & (inner <= thr)).flatten()
     if cand.numel() == 0 or float(inner[cand[0]]) > 0.5:
-        return []
+        return _none(why, f"its joints do not repeat a movement with a period of {min_s:g}-{hi / fps:.2f} s (not "
+                          f"periodic, or slower than half its {span:.2f} s)")
     L = int(lags[1:-1][cand[0]])
     u = x @ torch.linalg.svd(x, full_matrices=False).Vh[0]
     w = max(1, int(round(0.3 * L)))
@@ -68,39 +87,112 @@ def fallback_cycles(motion, min_s: float = 0.3, max_s: float = 3.0, max_cycles: 
             cycles.append((float(ts[a]), float(ts[b])))
             if max_cycles is not None and len(cycles) >= max_cycles:
                 break
+    if not cycles:
+        _none(why, f"its joints repeat with a period of {L / fps:.2f} s, but no stretch of it returns to its "
+                   f"starting pose one period later within {min_s:g}-{max_s:g} s")
     return cycles
 
 
-def cut_cycles(motions: list, anchors: int, min_s: float, max_s: float, per_motion: int,
-               gait_starts=(0.0,)) -> tuple[list[list], str]:
-    """Per motion, up to ``per_motion`` one-cycle Motions of ``anchors`` frames (timestamps 0 .. D,
-    the source's world frame, ``meta["cycle"]`` with the cycle's start/end in the source's time);
-    and the name of the cutter used.
+def _none(why: list | None, reason: str) -> list:
+    if why is not None:
+        why.append(reason)
+    return []
 
-    ``benchmark.synthetic.cycles.cycle_windows`` (the generator's phase; cycles start at the phase
-    offsets ``gait_starts``, default the left foot strike only, so a motion's cycles never overlap;
-    a seeded (seed 0) subset of ``per_motion`` when there are more) when importable, else
-    :func:`fallback_cycles` (the first ``per_motion`` cycles) resampled here.
+
+def cycle_defect(motion, t0: float, t1: float) -> str | None:
+    """Why the cycle [t0, t1] of ``motion`` cannot be a test sequence, or None: it spans a hole in
+    the timestamps or a root step faster than ``MAX_ROOT_SPEED`` (the module docstring)."""
+    ts = torch.as_tensor(motion.timestamps, dtype=torch.float64)
+    if ts.numel() < 2:
+        return None
+    dt = ts.diff()
+    inside = torch.nonzero((ts[1:] > t0 + 1e-9) & (ts[:-1] < t1 - 1e-9)).flatten()  # intervals the cycle overlaps
+    if inside.numel() == 0:
+        return None
+    med = float(dt.median())
+    i = int(inside[dt[inside].argmax()])
+    if float(dt[i]) > GAP_RATIO * med:
+        return (f"frames are missing between {float(ts[i]):.3f} s and {float(ts[i + 1]):.3f} s (a {float(dt[i]):.3f} s "
+                f"interval, {float(dt[i]) / med:.1f} x the median frame interval): the anchors would be interpolated "
+                "across the hole; split the motion there or fill the frames")
+    step = torch.as_tensor(motion.trans, dtype=torch.float64).diff(dim=0).norm(dim=-1)[inside]
+    speed = step / dt[inside]
+    j = int(speed.argmax())
+    if float(speed[j]) > MAX_ROOT_SPEED:
+        k = int(inside[j])
+        return (f"the root moves {float(step[j]):.2f} m between {float(ts[k]):.3f} s and {float(ts[k + 1]):.3f} s "
+                f"({float(speed[j]):.0f} m/s; no body moves faster than {MAX_ROOT_SPEED:g}): a glitch or two takes "
+                "joined; repair field 'trans' there or split the motion")
+    return None
+
+
+def cut_cycles(motions: list, anchors: int, min_s: float, max_s: float, per_motion: int,
+               gait_starts=(0.0,), skipped: dict | None = None) -> tuple[list[list], str]:
+    """Per motion, up to ``per_motion`` one-cycle Motions of ``anchors`` frames (timestamps 0 .. D,
+    the source's world frame, ``meta["cycle"]`` with the cycle's start/end in the source's time and
+    its ``cutter``); and the name of the cutter(s) used.
+
+    A motion with the generator's plan in its meta: ``benchmark.synthetic.cycles.cycle_windows`` (the
+    generator's phase; cycles start at the phase offsets ``gait_starts``, default the left foot
+    strike only, so a motion's cycles never overlap; a seeded (seed 0) subset of ``per_motion`` when
+    there are more). Any other motion (or all, when that module cannot be imported):
+    :func:`fallback_cycles` (the first ``per_motion`` usable cycles) resampled here. A cycle with a
+    :func:`cycle_defect` is left out. ``skipped`` (a dict), when given, receives {motion index:
+    [reason, ...]} for every cycle left out and every motion without a cycle.
     """
     try:
-        from benchmark.synthetic.cycles import cycle_windows
+        from benchmark.synthetic.cycles import cycle_windows, plan_from_meta
     except ImportError:
-        cycle_windows = None
+        cycle_windows = plan_from_meta = None
+    skipped = {} if skipped is None else skipped
+    planned = [k for k, m in enumerate(motions) if plan_from_meta is not None and _has_plan(m, plan_from_meta)]
     out: list[list] = [[] for _ in motions]
-    if cycle_windows is None:
-        for k, m in enumerate(motions):
-            for t0, t1 in fallback_cycles(m, min_s, max_s, per_motion):
-                tau = torch.linspace(0.0, t1 - t0, anchors, dtype=torch.float64)
-                w = m.resample(t0 + tau)
-                meta = {**dict(m.meta), "cycle": {"start": t0, "end": t1, "kind": "fallback", "motion_index": k,
-                                                  "source": m.source}}
-                out[k].append(dataclasses.replace(w, timestamps=tau, meta=meta))
-        return out, "sls.fallback_cycles (pose-signal period and principal-component minima)"
-    windows = cycle_windows(motions, anchors=anchors, min_s=min_s, max_s=max_s, gait_starts=tuple(gait_starts),
-                            max_per_motion=per_motion, seed=0)
-    for w in windows:
-        out[int(w.meta["cycle"]["motion_index"])].append(w)
-    return out, "benchmark.synthetic.cycles.cycle_windows"
+    if planned:
+        windows = cycle_windows([motions[k] for k in planned], anchors=anchors, min_s=min_s, max_s=max_s,
+                                gait_starts=tuple(gait_starts), max_per_motion=per_motion, seed=0, method="plan")
+        for w in windows:
+            k = planned[int(w.meta["cycle"]["motion_index"])]
+            c = w.meta["cycle"]
+            why = cycle_defect(motions[k], float(c["start"]), float(c["end"]))
+            if why is not None:
+                skipped.setdefault(k, []).append(f"cycle {float(c['start']):.2f}-{float(c['end']):.2f} s: {why}")
+                continue
+            out[k].append(dataclasses.replace(w, meta={**w.meta, "cycle": {**c, "motion_index": k}}))
+        for k in planned:
+            if not out[k] and k not in skipped:
+                skipped[k] = [f"the generator's plan has no cycle of {min_s:g}-{max_s:g} s inside its frames"]
+    for k, m in enumerate(motions):
+        if k in planned:
+            continue
+        why: list = []
+        for t0, t1 in fallback_cycles(m, min_s, max_s, why=why):
+            if len(out[k]) >= per_motion:
+                break
+            defect = cycle_defect(m, t0, t1)
+            if defect is not None:
+                skipped.setdefault(k, []).append(f"cycle {t0:.2f}-{t1:.2f} s: {defect}")
+                continue
+            tau = torch.linspace(0.0, t1 - t0, anchors, dtype=torch.float64)
+            w = m.resample(t0 + tau)
+            meta = {**dict(m.meta), "cycle": {"start": t0, "end": t1, "kind": "fallback", "motion_index": k,
+                                              "source": m.source, "cutter": FALLBACK}}
+            out[k].append(dataclasses.replace(w, timestamps=tau, meta=meta))
+        if why:
+            skipped[k] = why
+    n_plan = len(planned)
+    if n_plan == len(motions):
+        return out, PLAN
+    if n_plan == 0:
+        return out, FALLBACK
+    return out, f"{PLAN} ({n_plan} motions with the generator's plan), {FALLBACK} (the other {len(motions) - n_plan})"
+
+
+def _has_plan(motion, plan_from_meta) -> bool:
+    try:
+        plan_from_meta(motion.meta)
+    except KeyError:
+        return False
+    return True
 
 
 def align_first_anchor(m):
