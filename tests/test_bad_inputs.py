@@ -255,7 +255,7 @@ def _(tmp, mp):
     return ["run", "table1", "--prior", "no-prior", "--data", str(tmp / "data"), "--out", str(tmp / "o")]
 
 
-@case("sls --data without a motion cycle", "run", "sls found no motion cycle of 0.3-3.0 s", "short.npz",
+@case("sls --data without a motion cycle", "run", "sls found no usable motion cycle of 0.3-3.0 s", "short.npz",
       "repeat a movement")
 def _(tmp, mp):
     path = tmp / "data" / "short.npz"
