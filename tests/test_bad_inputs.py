@@ -255,7 +255,7 @@ def _(tmp, mp):
     return ["run", "table1", "--prior", "no-prior", "--data", str(tmp / "data"), "--out", str(tmp / "o")]
 
 
-@case("sls --data without a motion cycle", "run", "sls found no motion cycle of 0.3-3.0 s", "short.npz",
+@case("sls --data without a motion cycle", "run", "sls found no usable motion cycle of 0.3-3.0 s", "short.npz",
       "repeat a movement")
 def _(tmp, mp):
     path = tmp / "data" / "short.npz"
@@ -1074,6 +1074,22 @@ def _(tmp, mp):  # the fix in report's words, not compare's ("Compare it with ..
     run.mkdir()
     table_json(run, "table1.json", format_version=99)
     return ["report", str(run)]
+
+
+@case("--data where every motion has missing frames or a root teleport in the window", "run",
+      "no usable motion is left", "gap.npz", "frames are missing between 0.967 s and 2.000 s", "jump.npz",
+      "the root moves 5.00 m between 1.467 s and 1.500 s", "split the motion there")
+def _(tmp, mp):
+    data = tmp / "data"
+    data.mkdir()
+    for name in ("gap.npz", "jump.npz"):
+        t, trans = np.arange(210) / 30.0, np.zeros((210, 3))
+        if name == "gap.npz":
+            t[30:] += 1.0  # 30 frames lost after 0.967 s
+        else:
+            trans[45:, 0] = 5.0  # 5 m in one frame at 1.5 s
+        np.savez(data / name, poses=np.zeros((210, 22, 3)), trans=trans, timestamps=t, fps=np.float64(30.0))
+    return ["run", "table1", "--prior", "no-prior", "--data", str(data), "--out", str(tmp / "o")]
 
 
 # (end of section: misc)

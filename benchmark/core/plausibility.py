@@ -30,6 +30,13 @@ Thresholds (module constants) and why:
   float32 resolves only 0.06 mm at 1 km (and 6 cm at 10^6 m). Error. Beyond ``WARN_TRANSLATION_M`` /
   ``WARN_COORDINATE_M`` = 100 m: a warning (an outdoor capture can be that large; centimetres look
   like this too).
+- Holes and teleports inside the part of a motion a table reads (:func:`window_defect`; the tables
+  skip such a motion, or sls such a cycle, with the reason, instead of refusing the file, whose
+  other parts may serve): a frame interval more than ``GAP_RATIO`` = 2.5 times the motion's median
+  one is a hole (frames are missing: one dropped frame makes 2x; resampling would SLERP / LERP an
+  invented motion across it), and a root step faster than ``MAX_ROOT_SPEED`` = 20 m/s is a teleport
+  (a tracking glitch or two takes joined: a sprinter peaks near 12 m/s, the synthetic splits stay
+  under 8).
 - Scan frames: at least ``MIN_SCAN_POINTS`` = 3 points (fewer span no surface: no fit, Chamfer
   distance or height check means anything; a sparse marker set has dozens, a scanner thousands).
   Error.
@@ -54,6 +61,7 @@ import logging
 import math
 
 import numpy as np
+import torch
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +78,8 @@ MIN_SCAN_POINTS = 3
 SMPL_FAMILY = ("smpl", "smplh", "smplx")
 SMPL_BETAS_CUT_SILENTLY = 16
 SHAPE_ZERO_TOL = 1e-6
+GAP_RATIO = 2.5  # a frame interval this many times the median one is a hole (one dropped frame is 2x)
+MAX_ROOT_SPEED = 20.0  # m/s between two frames; a sprinter peaks near 12, the synthetic splits under 8
 
 # Time units people write by mistake: (name, seconds per unit, the fix). Timestamps written in
 # unit u give a rate r per u, i.e. r / u frames per second.
@@ -192,6 +202,38 @@ def check_motion(motion, where: str, time_field: str = "timestamps", time_fix: s
     out = check_timestamps(motion.timestamps, where, time_field, time_fix, warn=False)
     out += check_translation(motion.trans, where, trans_field, trans_fix, warn=False)
     return _emit(out, warn)
+
+
+# ------------------------------------------------------------------------------------------------ holes
+def window_defect(motion, t0: float, t1: float) -> str | None:
+    """Why the part [t0, t1] (seconds, the motion's own clock) of ``motion`` (``timestamps``, ``trans``)
+    cannot be scored, or None: a frame interval it overlaps is more than ``GAP_RATIO`` times the
+    motion's median one (a hole), or the root moves faster than ``MAX_ROOT_SPEED`` between two of
+    its frames (a teleport). The reason names the times and the fix. Used by the sls cycles
+    (:mod:`benchmark.protocols.sls_cycles`) and by every table's window
+    (:func:`benchmark.data.table_data.load_motions`)."""
+    ts = torch.as_tensor(motion.timestamps, dtype=torch.float64)
+    if ts.numel() < 2:
+        return None
+    dt = ts.diff()
+    inside = torch.nonzero((ts[1:] > t0 + 1e-9) & (ts[:-1] < t1 - 1e-9)).flatten()  # intervals the part overlaps
+    if inside.numel() == 0:
+        return None
+    med = float(dt.median())
+    i = int(inside[dt[inside].argmax()])
+    if float(dt[i]) > GAP_RATIO * med:
+        return (f"frames are missing between {float(ts[i]):.3f} s and {float(ts[i + 1]):.3f} s (a {float(dt[i]):.3f} s "
+                f"interval, {float(dt[i]) / med:.1f} x the median frame interval): the table would interpolate an "
+                "invented motion across the hole; split the motion there or fill the frames")
+    step = torch.as_tensor(motion.trans, dtype=torch.float64).diff(dim=0).norm(dim=-1)[inside]
+    speed = step / dt[inside]
+    j = int(speed.argmax())
+    if float(speed[j]) > MAX_ROOT_SPEED:
+        k = int(inside[j])
+        return (f"the root moves {float(step[j]):.2f} m between {float(ts[k]):.3f} s and {float(ts[k + 1]):.3f} s "
+                f"({float(speed[j]):.0f} m/s; no body moves faster than {MAX_ROOT_SPEED:g}): a glitch or two takes "
+                "joined; repair field 'trans' there or split the motion")
+    return None
 
 
 # ------------------------------------------------------------------------------------------------ scans

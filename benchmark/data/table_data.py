@@ -1,6 +1,12 @@
 """The test motions of a table (:func:`load_motions`): the synthetic test split, or ``--data``'s
 motion files, shapes made fit for the body; shared by the protocols, the runner and the commands.
-Which of them a profile runs: :func:`benchmark.core.work_units.select_sequences`."""
+Which of them a profile runs: :func:`benchmark.core.work_units.select_sequences`.
+
+A motion is skipped, with a warning that names its file and the reason, when it is too short for
+the table's window (:func:`too_short`), or when the part of it the table reads (``window``:
+:func:`read_part`) spans a hole in its timestamps or a root teleport
+(:func:`benchmark.core.plausibility.window_defect`: the table would resample across it and score the
+fit against an invented ground truth). When no motion is left the error names them all."""
 
 from __future__ import annotations
 
@@ -8,6 +14,7 @@ import logging
 from pathlib import Path
 
 from benchmark.core.motion import Motion, shape_for_body
+from benchmark.core.plausibility import window_defect
 from benchmark.core.safe_loading import npz_read_error
 
 log = logging.getLogger(__name__)
@@ -23,10 +30,26 @@ def too_short(motion, min_duration: float, sample_fps: float | None = None) -> b
     return sample_fps is not None and (round(min_duration * sample_fps) - 1) / sample_fps > motion.span + 1e-6
 
 
-def load_motions(data: str | None, min_duration: float, body=None, sample_fps: float | None = None) -> dict:
+def read_part(motion, start: float, length: float) -> tuple[float, float]:
+    """(t0, t1), seconds on the motion's clock, enclosing what a table reads of ``motion`` for a window
+    of ``length`` s from ``start`` s after its first frame: from that instant (a table resampling the
+    motion interpolates the frame interval around it) to ``length`` after the first frame at or after
+    it (table1 cuts the motion there and samples its window from that frame)."""
+    t = motion.timestamps
+    t0 = float(t[0]) + float(start)
+    later = t[t >= t0 - 1e-9]
+    first = float(later[0]) if len(later) else t0
+    return t0, first + float(length)
+
+
+def load_motions(data: str | None, min_duration: float, body=None, sample_fps: float | None = None,
+                 window: tuple[float, float] | None = None) -> dict:
     """Test motions by id: the synthetic test split by default, or a folder of motion files (each
     checked by its loader: :mod:`benchmark.core.plausibility`). Motions too short for the window
-    (:func:`too_short`; ``sample_fps``: the rate the table samples them at) are skipped with a warning."""
+    (:func:`too_short`; ``sample_fps``: the rate the table samples them at) are skipped with a warning.
+    ``window`` = (start after the first frame, length), seconds: the window the table reads of each
+    motion; a motion with a hole or a root teleport there (:func:`skip_defects`) is skipped too. sls
+    passes none (it checks each of its cycles)."""
     files_by_id = {}
     if data is None:
         from benchmark.synthetic.splits import build_split
@@ -90,4 +113,37 @@ def load_motions(data: str | None, min_duration: float, body=None, sample_fps: f
                          f"{by_id[longest].span:.3f} s): {fix}")
     if short:
         log.warning("skipping %d motions shorter than the %.1f s window: %s", len(short), min_duration, short[:5])
-    return {k: m for k, m in by_id.items() if k not in short}
+    kept = {k: m for k, m in by_id.items() if k not in short}
+    if window is not None:
+        where = f"--data {data}" if data is not None else "the synthetic test split"
+        kept = skip_defects(kept, window, where, files_by_id, len(short))
+    return kept
+
+
+def skip_defects(motions: dict, window: tuple[float, float], where: str, files_by_id: dict | None = None,
+                 n_short: int = 0) -> dict:
+    """``motions`` less those whose window (``window`` = (start after the first frame, length), seconds;
+    the part :func:`read_part` encloses) spans a hole in the timestamps or a root teleport
+    (:func:`benchmark.core.plausibility.window_defect`): each is skipped with a warning naming its file
+    (``files_by_id``, else its id), the time and the fix; a ValueError names them all when none is
+    left (``n_short``: how many were already skipped as too short, for the message)."""
+    start, length = float(window[0]), float(window[1])
+    bad = {}
+    for k, m in motions.items():
+        t0, t1 = read_part(m, start, length)
+        why = window_defect(m, t0, t1)
+        if why is not None:
+            rel = f"{t0 - float(m.timestamps[0]):.2f}-{t1 - float(m.timestamps[0]):.2f} s"
+            bad[k] = f"{(files_by_id or {}).get(k, k)} (within the {length:g} s window the table reads, {rel} after " \
+                     f"its first frame): {why}"
+    if bad and len(bad) == len(motions):
+        short = f"; the other {n_short} are shorter than the window" if n_short else ""
+        raise ValueError(f"{where}: no usable motion is left: every one of the {len(bad)} long enough for the "
+                         f"{length:g} s window has a hole in its timestamps or a root teleport within it{short}: "
+                         + "; ".join(bad.values()))
+    for k in bad:
+        log.warning("skipping %s", bad[k])
+    if bad:
+        log.warning("skipped %d of %d motions for a hole or a root teleport within the window (above)",
+                    len(bad), len(motions))
+    return {k: m for k, m in motions.items() if k not in bad}

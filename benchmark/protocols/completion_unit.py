@@ -456,14 +456,17 @@ def make_source(spec: dict, body, motions_by_id: dict, seed: int):
 
 
 def load_motions(spec: dict, data: str | None, body) -> dict:
-    """--data: captured scans (``scans=DIR``, scan_completion.py) or motions (:func:`benchmark.data.table_data.load_motions`)."""
+    """--data: captured scans (``scans=DIR``, scan_completion.py) or motions (:func:`benchmark.data.table_data.load_motions`:
+    a motion with a hole in its timestamps or a root teleport within the window is skipped)."""
     if data and data.startswith("scans="):
         from benchmark.protocols.scan_completion import load_scan_sequences
 
         return load_scan_sequences(spec, data)
     from benchmark.data.table_data import load_motions as load_motion_files
 
-    return load_motion_files(data, float(spec["data"]["window_s"]), body, sample_fps=float(spec["data"]["capture_fps"]))
+    d = spec["data"]
+    return load_motion_files(data, float(d["window_s"]), body, sample_fps=float(d["capture_fps"]),
+                             window=(float(d.get("window_start_s", 0.0)), float(d["window_s"])))
 
 
 def run_unit(unit, spec: dict, profile: dict, adapter, body, source: CompletionData, device) -> dict:

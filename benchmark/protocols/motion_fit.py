@@ -141,12 +141,12 @@ def table_window(spec: dict) -> tuple[float, float, float]:
 
 def load_table_motions(spec: dict, data, body, longest_window_s: float | None = None) -> dict:
     """The test motions of a motion table: :func:`benchmark.data.table_data.load_motions`, long enough
-    for the window."""
+    for the window, and without a hole or a root teleport within it (the longest window of the grid)."""
     from benchmark.data.table_data import load_motions
 
     fps, start, window = table_window(spec)
     needed = start + (longest_window_s or window)
-    motions = load_motions(data, needed, body)
+    motions = load_motions(data, needed, body, window=(start, longest_window_s or window))
     # resampled to the table's rate a motion covers its first to its last frame: the window's last
     # frame must lie within it (a 2.0 s motion at 24 fps ends at 1.958 s, before a 30 fps window's 1.967 s)
     short = [k for k, m in motions.items() if m.span + 1e-6 < needed - 1.0 / fps]

@@ -13,7 +13,7 @@ Data (:func:`load_motions`, :class:`~benchmark.protocols.sls_data.SlsData`)
     generator's plan, else (``--data``)
     :func:`~benchmark.protocols.sls_cycles.fallback_cycles` (its docstring: a motion that does not
     repeat gives no cycle). A cycle across a hole in the timestamps or a teleport of the root is
-    left out (:func:`~benchmark.protocols.sls_cycles.cycle_defect`), and every motion or cycle left
+    left out (:func:`~benchmark.core.plausibility.window_defect`), and every motion or cycle left
     out is named with its reason. Cycles of ``cycle_min_s``..``cycle_max_s`` seconds are kept,
     at most ``data.cycles_per_motion`` per motion (cycle_windows: a subset drawn with its seed 0,
     fixed, so the test sequences never depend on the table seed). Each cycle is rigidly aligned

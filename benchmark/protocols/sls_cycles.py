@@ -14,10 +14,11 @@ max(0.1, 3 d(L))) make a cycle. Frame-quantised (20 ms at 50 fps).
 Which cutter: a motion whose meta holds the generator's plan (the synthetic splits) is cut by
 ``benchmark.synthetic.cycles.cycle_windows`` on that plan's gait phase; every other motion (``--data``)
 by :func:`fallback_cycles`, whose period and pose-closure checks keep a motion that does not repeat
-from yielding a "cycle". Either way a cycle is left out, with its reason (:func:`cycle_defect`), when
-it spans a hole in the timestamps (an interval more than ``GAP_RATIO`` times the motion's median
+from yielding a "cycle". Either way a cycle is left out, with its reason
+(:func:`benchmark.core.plausibility.window_defect`, shared with the other tables' windows), when
+it spans a hole in the timestamps (an interval more than ``GAP_RATIO`` = 2.5 times the motion's median
 frame interval: frames are missing and the anchors would be interpolated across them) or a root
-step faster than ``MAX_ROOT_SPEED`` m/s (a teleport: a glitch or two takes joined; no body moves so).
+step faster than ``MAX_ROOT_SPEED`` = 20 m/s (a teleport: a glitch or two takes joined; no body moves so).
 """
 
 from __future__ import annotations
@@ -28,10 +29,9 @@ import math
 import roma
 import torch
 
+from benchmark.core.plausibility import window_defect
 from benchmark.core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
-GAP_RATIO = 2.5  # a frame interval this many times the median one is a hole (one dropped frame is 2x)
-MAX_ROOT_SPEED = 20.0  # m/s between two frames; a sprinter peaks near 12, the synthetic splits under 8
 FALLBACK = "sls.fallback_cycles (pose-signal period and principal-component minima)"
 PLAN = "benchmark.synthetic.cycles.cycle_windows"
 
@@ -99,33 +99,6 @@ def _none(why: list | None, reason: str) -> list:
     return []
 
 
-def cycle_defect(motion, t0: float, t1: float) -> str | None:
-    """Why the cycle [t0, t1] of ``motion`` cannot be a test sequence, or None: it spans a hole in
-    the timestamps or a root step faster than ``MAX_ROOT_SPEED`` (the module docstring)."""
-    ts = torch.as_tensor(motion.timestamps, dtype=torch.float64)
-    if ts.numel() < 2:
-        return None
-    dt = ts.diff()
-    inside = torch.nonzero((ts[1:] > t0 + 1e-9) & (ts[:-1] < t1 - 1e-9)).flatten()  # intervals the cycle overlaps
-    if inside.numel() == 0:
-        return None
-    med = float(dt.median())
-    i = int(inside[dt[inside].argmax()])
-    if float(dt[i]) > GAP_RATIO * med:
-        return (f"frames are missing between {float(ts[i]):.3f} s and {float(ts[i + 1]):.3f} s (a {float(dt[i]):.3f} s "
-                f"interval, {float(dt[i]) / med:.1f} x the median frame interval): the anchors would be interpolated "
-                "across the hole; split the motion there or fill the frames")
-    step = torch.as_tensor(motion.trans, dtype=torch.float64).diff(dim=0).norm(dim=-1)[inside]
-    speed = step / dt[inside]
-    j = int(speed.argmax())
-    if float(speed[j]) > MAX_ROOT_SPEED:
-        k = int(inside[j])
-        return (f"the root moves {float(step[j]):.2f} m between {float(ts[k]):.3f} s and {float(ts[k + 1]):.3f} s "
-                f"({float(speed[j]):.0f} m/s; no body moves faster than {MAX_ROOT_SPEED:g}): a glitch or two takes "
-                "joined; repair field 'trans' there or split the motion")
-    return None
-
-
 def cut_cycles(motions: list, anchors: int, min_s: float, max_s: float, per_motion: int,
                gait_starts=(0.0,), skipped: dict | None = None) -> tuple[list[list], str]:
     """Per motion, up to ``per_motion`` one-cycle Motions of ``anchors`` frames (timestamps 0 .. D,
@@ -137,7 +110,7 @@ def cut_cycles(motions: list, anchors: int, min_s: float, max_s: float, per_moti
     strike only, so a motion's cycles never overlap; a seeded (seed 0) subset of ``per_motion`` when
     there are more). Any other motion (or all, when that module cannot be imported):
     :func:`fallback_cycles` (the first ``per_motion`` usable cycles) resampled here. A cycle with a
-    :func:`cycle_defect` is left out. ``skipped`` (a dict), when given, receives {motion index:
+    :func:`~benchmark.core.plausibility.window_defect` is left out. ``skipped`` (a dict), when given, receives {motion index:
     [reason, ...]} for every cycle left out and every motion without a cycle.
     """
     try:
@@ -153,7 +126,7 @@ def cut_cycles(motions: list, anchors: int, min_s: float, max_s: float, per_moti
         for w in windows:
             k = planned[int(w.meta["cycle"]["motion_index"])]
             c = w.meta["cycle"]
-            why = cycle_defect(motions[k], float(c["start"]), float(c["end"]))
+            why = window_defect(motions[k], float(c["start"]), float(c["end"]))
             if why is not None:
                 skipped.setdefault(k, []).append(f"cycle {float(c['start']):.2f}-{float(c['end']):.2f} s: {why}")
                 continue
@@ -168,7 +141,7 @@ def cut_cycles(motions: list, anchors: int, min_s: float, max_s: float, per_moti
         for t0, t1 in fallback_cycles(m, min_s, max_s, why=why):
             if len(out[k]) >= per_motion:
                 break
-            defect = cycle_defect(m, t0, t1)
+            defect = window_defect(m, t0, t1)
             if defect is not None:
                 skipped.setdefault(k, []).append(f"cycle {t0:.2f}-{t1:.2f} s: {defect}")
                 continue
