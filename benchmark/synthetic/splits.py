@@ -247,7 +247,7 @@ def _build_lock(folder: Path):
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            log.warning("synthetic split %s: another process is building it; waiting for it", folder.name)
+            log.info("synthetic split %s: another process is building it; waiting for it", folder.name)
             fcntl.flock(fh, fcntl.LOCK_EX)
         try:
             yield
