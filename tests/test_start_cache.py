@@ -148,6 +148,10 @@ def test_a_log_json_would_change_is_not_stored(tmp_path):
         assert start_cache.write(("k",), {"stages": (1, 2)}, yaw=torch.zeros(1)) is None  # a tuple comes back a list
         assert start_cache.write(("k",), {"stages": [1, 2]}, yaw=torch.zeros(1)) is not None
         assert start_cache.read(("k",), "cpu")["log"] == {"stages": [1, 2]}
+    from benchmark.core.json_io import current_umask
+
+    (stored,) = tmp_path.glob("*.pt")
+    assert stored.stat().st_mode & 0o777 == 0o666 & ~current_umask()  # as the run's other files, not mkstemp's 0600
     assert start_cache.write(("k",), {}, yaw=torch.zeros(1)) is None  # no cache in use
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import torch
 
+from benchmark.core.json_io import current_umask
 from benchmark.protocols.fit_state import FitState, as_latent
 
 log = logging.getLogger(__name__)
@@ -121,6 +122,7 @@ def write(key: tuple, search_log: dict, **tensors) -> Path | None:
         try:
             with os.fdopen(fd, "wb") as fh:
                 torch.save(blob, fh)
+            os.chmod(tmp, 0o666 & ~current_umask())  # as the run's other files (mkstemp makes it 0600)
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
