@@ -96,16 +96,19 @@ _FACING_CACHE: OrderedDict = OrderedDict()
 FACING_CACHE_SIZE = 16
 
 
-def facing_key(body, batch: FitBatch, device, lr: float, lambda_prior: float, body_token=None) -> tuple:
+def facing_keys(body, batch: FitBatch, device, lr: float, lambda_prior: float) -> tuple[tuple, tuple]:
     """What :func:`observation_facing`'s result depends on: the observation's content (its
-    :func:`~benchmark.data.degrade.fingerprint`), the body (``body_token``, else the object's id: a
-    key for this process only), the device, the objective and the search's sizes."""
+    :func:`~benchmark.data.degrade.fingerprint`), the body, the device, the objective and the search's
+    sizes. Two keys: this process's (the body by its id) and the disk's (the stored searches of a table
+    run, :mod:`benchmark.protocols.start_cache`, whose namespace names the run's body)."""
     from benchmark.data.degrade import fingerprint
 
     obs = PointCloudSequence(points=batch.points.detach().cpu(), lengths=batch.lengths.cpu(),
                              timestamps=batch.timestamps.detach().cpu())
-    return (fingerprint(obs), float(batch.window_s), id(body) if body_token is None else body_token, str(device), float(lr), float(lambda_prior),
-            FACING_HYPOTHESES, FACING_POINTS, FACING_VERTICES, tuple(FACING_STEPS))
+    head = (fingerprint(obs), float(batch.window_s))
+    tail = (str(device), float(lr), float(lambda_prior), FACING_HYPOTHESES, FACING_POINTS, FACING_VERTICES,
+            tuple(FACING_STEPS))
+    return (*head, id(body), *tail), (*head, "run body", *tail)
 
 
 @torch.no_grad()
@@ -122,13 +125,12 @@ def observation_facing(body, batch: FitBatch, generator: torch.Generator, device
     on disk too (:mod:`benchmark.protocols.start_cache`)."""
     from priors.no_prior import NoPrior
 
-    key = facing_key(body, batch, device, lr, lambda_prior)
+    key, run_key = facing_keys(body, batch, device, lr, lambda_prior)
     hit = _FACING_CACHE.get(key)
     if hit is not None and hit[0] is body:
         _FACING_CACHE.move_to_end(key)
         return hit[1].clone(), copy.deepcopy(hit[2])
-    # on disk (a table run's <out>/cache/starts, benchmark.protocols.start_cache): the body is the run's
-    disk_key = ("facing", *facing_key(body, batch, device, lr, lambda_prior, body_token="run body"))
+    disk_key = ("facing", *run_key)  # on disk: a table run's <out>/cache/starts (benchmark.protocols.start_cache)
     stored = start_cache.read(disk_key, device)
     if stored is not None and isinstance(stored.get("yaw"), torch.Tensor):
         yaw, log = stored["yaw"], stored["log"]

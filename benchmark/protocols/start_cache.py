@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 
 from benchmark.core.json_io import current_umask
-from benchmark.protocols.fit_state import FitState, as_latent
+from benchmark.protocols.fit_state import FitState
 
 log = logging.getLogger(__name__)
 
@@ -134,22 +134,19 @@ def write(key: tuple, search_log: dict, **tensors) -> Path | None:
 
 
 def load_state(key: tuple, adapter, device) -> tuple[FitState, dict] | None:
-    """The start stored for ``key`` by :func:`store_state` (on ``device``, with ``adapter``: every
-    variable a fresh leaf) and the search's log, or None (:func:`read`)."""
+    """The start stored for ``key`` by :func:`store_state` (on ``device``, with ``adapter``) and the
+    search's log, or None (:func:`read`). Its tensors are plain: the caller hands out leaf copies
+    (``start_search._leaf_copy``), as it does of a start kept in memory."""
     blob = read(key, device)
     if blob is None:
         return None
     try:
         tensors = blob["tensors"]
-        state = FitState(adapter=adapter, latents={k: as_latent(adapter, k, v) for k, v in blob["latents"].items()},
-                         window_s=float(blob["window_s"]), bounded_shape=bool(blob["bounded_shape"]),
-                         **{name: tensors.get(name) for name in TENSOR_FIELDS})
+        state = FitState(adapter=adapter, latents=dict(blob["latents"]), window_s=float(blob["window_s"]),
+                         bounded_shape=bool(blob["bounded_shape"]), **{name: tensors.get(name) for name in TENSOR_FIELDS})
     except (KeyError, TypeError, AttributeError) as exc:
         log.warning("stored prior-free start for this observation lacks %s; searching again", exc)
         return None
-    for name in ("shape_param", "root", "trans", "heading", "offset"):
-        if getattr(state, name) is not None:
-            getattr(state, name).requires_grad_(True)
     return state, blob["log"]
 
 

@@ -200,18 +200,18 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
     last START_CACHE_SIZE observations and served again as a fresh copy, and, within a table run, on
     disk for its other workers and its resumptions (:mod:`benchmark.protocols.start_cache`). Returns the state and the
     search's log."""
-    from benchmark.protocols.facing import facing_key, observed_facing
+    from benchmark.protocols.facing import facing_keys, observed_facing
     from priors.no_prior import NoPrior
 
     if facing not in PRIOR_FREE_FACINGS:
         raise ValueError(f"prior_free_start: unknown facing {facing!r}; choose one of {', '.join(PRIOR_FREE_FACINGS)}")
     sizes = (repr(LIMB_START_STAGES), START_SEARCH_STEPS)
-    key = ("start", facing, *facing_key(body, batch, device, lr, lambda_prior), *sizes)
+    process_key, run_key = facing_keys(body, batch, device, lr, lambda_prior)
+    key = ("start", facing, *process_key, *sizes)
     hit = _START_CACHE.get(key)
     if hit is None or hit[0] is not body:
         ref_prior = NoPrior(device=device)
-        # on disk (a table run's <out>/cache/starts, benchmark.protocols.start_cache): the body is the run's
-        disk_key = ("start", facing, *facing_key(body, batch, device, lr, lambda_prior, body_token="run body"), *sizes)
+        disk_key = ("start", facing, *run_key, *sizes)  # on disk: a table run's <out>/cache/starts (start_cache)
         stored = start_cache.load_state(disk_key, ref_prior, device)
         if stored is None:
             if facing == "aligned":

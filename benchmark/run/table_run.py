@@ -229,10 +229,10 @@ def run_table(spec, profile, priors, body, device, seed, out_dir: Path, resume="
                        threads=backend_threads(run_backend))
     source = protocol.make_source(spec, body, motions, seed)
     # the prior-free searches on disk, for the other workers and a resumed run (Ray's workers may not share this disk)
-    starts = None if backend == "ray" else Path(out_dir) / Path(*START_CACHE_FOLDER)
-    if resume == "never" and forget_starts(Path(out_dir) / Path(*START_CACHE_FOLDER)):
+    starts = Path(out_dir) / Path(*START_CACHE_FOLDER)
+    if resume == "never" and forget_starts(starts):
         log.info("--resume never: the stored prior-free starts are searched again")
-    execute = TableExecutor(protocol, spec, profile, adapters, body, source, device, starts)
+    execute = TableExecutor(protocol, spec, profile, adapters, body, source, device, None if backend == "ray" else starts)
 
     report = run_units(units, execute, out_dir, resume=resume, backend=run_backend,
                        carry=lambda unit: protocol.carry_problem(spec))
