@@ -1092,6 +1092,14 @@ def _(tmp, mp):
     return ["run", "table1", "--prior", "no-prior", "--data", str(data), "--out", str(tmp / "o")]
 
 
+@case("scans: a hole in the timestamps within the window", "run", "is usable", "1 have a hole in it",
+      "walk_01/timestamps.txt", "frames are missing between 1.980 s and 2.500 s", "split the capture at the hole")
+def _(tmp, mp):
+    ts = np.arange(210) / 50.0
+    ts[100:] += 0.5  # 25 frames lost after 1.98 s, inside the 4 s window
+    return _pl_run_scans(tmp, mp, _pl_scan_root(tmp, timestamps=ts, frames=210))
+
+
 # (end of section: misc)
 
 

@@ -119,6 +119,30 @@ def test_short_sequences_are_skipped_with_a_warning_and_none_left_is_an_error(tm
         find_scan_sequences(tmp_path / "empty")
 
 
+def test_a_sequence_with_a_hole_in_its_window_is_skipped_naming_the_times(tmp_path, caplog):
+    """A hole in the timestamps inside the window is not interpolated into ground truth: the sequence
+    is left out with a warning naming its timestamps file, the times and the fix (as a motion's hole);
+    a hole after the window costs nothing; no usable sequence left is an error saying why."""
+    root = tmp_path / "root"
+    ts = np.arange(31) / 50.0
+    ts[15:] += 0.2  # 0.22 s between frames 14 and 15: 11 x the median 0.02 s
+    write_folder(root / "hole", [person() for _ in range(31)], timestamps=ts)
+    late = np.arange(41) / 50.0
+    late[35:] += 0.2  # after the window's last instant (0.6 - 1/30 s): not read
+    write_folder(root / "late", [person() for _ in range(41)], timestamps=late)
+    spec = table1_spec(window_s=0.6)
+    with caplog.at_level(logging.WARNING):
+        found = load_scan_sequences(spec, f"scans={root}")
+    assert list(found) == ["late"]
+    assert "hole" in caplog.text and "timestamps.txt: frames are missing between 0.280 s and 0.500 s" in caplog.text
+    assert "split the capture at the hole" in caplog.text
+    import shutil
+
+    shutil.rmtree(root / "late")
+    with pytest.raises(ValueError, match=r"none of the 1 sequence folder.*is usable: 0 do not cover.*1 have a hole in it: .*timestamps.txt: frames are missing.*split the capture"):
+        load_scan_sequences(spec, f"scans={root}")
+
+
 def test_data_option_strings():
     assert scan_data_spec("scans=/d", None, None) == "scans=/d"
     spec = scan_data_spec("scans=/d", "z", "mm")

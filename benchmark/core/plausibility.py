@@ -205,26 +205,41 @@ def check_motion(motion, where: str, time_field: str = "timestamps", time_fix: s
 
 
 # ------------------------------------------------------------------------------------------------ holes
-def window_defect(motion, t0: float, t1: float) -> str | None:
-    """Why the part [t0, t1] (seconds, the motion's own clock) of ``motion`` (``timestamps``, ``trans``)
-    cannot be scored, or None: a frame interval it overlaps is more than ``GAP_RATIO`` times the
-    motion's median one (a hole), or the root moves faster than ``MAX_ROOT_SPEED`` between two of
-    its frames (a teleport). The reason names the times and the fix. Used by the sls cycles
-    (:mod:`benchmark.protocols.sls_cycles`) and by every table's window
-    (:func:`benchmark.data.table_data.load_motions`)."""
-    ts = torch.as_tensor(motion.timestamps, dtype=torch.float64)
+def hole_defect(timestamps, t0: float, t1: float,
+                fix: str = "split the motion there or fill the frames") -> tuple[str | None, torch.Tensor | None]:
+    """(why, intervals): why the part [t0, t1] (seconds) of a recording with these ``timestamps`` spans
+    a hole, or None: a frame interval it overlaps is more than ``GAP_RATIO`` times the median one.
+    ``intervals``: the indices i of the intervals [t_i, t_i+1] the part overlaps (None: no interval).
+    The reason names the times and ends with ``fix``. Motions (:func:`window_defect`) and captured
+    scans (:mod:`benchmark.protocols.scan_completion`) share it."""
+    ts = torch.as_tensor(timestamps, dtype=torch.float64)
     if ts.numel() < 2:
-        return None
+        return None, None
     dt = ts.diff()
     inside = torch.nonzero((ts[1:] > t0 + 1e-9) & (ts[:-1] < t1 - 1e-9)).flatten()  # intervals the part overlaps
     if inside.numel() == 0:
-        return None
+        return None, None
     med = float(dt.median())
     i = int(inside[dt[inside].argmax()])
     if float(dt[i]) > GAP_RATIO * med:
         return (f"frames are missing between {float(ts[i]):.3f} s and {float(ts[i + 1]):.3f} s (a {float(dt[i]):.3f} s "
                 f"interval, {float(dt[i]) / med:.1f} x the median frame interval): the table would interpolate an "
-                "invented motion across the hole; split the motion there or fill the frames")
+                f"invented motion across the hole; {fix}"), inside
+    return None, inside
+
+
+def window_defect(motion, t0: float, t1: float) -> str | None:
+    """Why the part [t0, t1] (seconds, the motion's own clock) of ``motion`` (``timestamps``, ``trans``)
+    cannot be scored, or None: a frame interval it overlaps is more than ``GAP_RATIO`` times the
+    motion's median one (a hole, :func:`hole_defect`), or the root moves faster than
+    ``MAX_ROOT_SPEED`` between two of its frames (a teleport). The reason names the times and the fix.
+    Used by the sls cycles (:mod:`benchmark.protocols.sls_cycles`) and by every table's window
+    (:func:`benchmark.data.table_data.load_motions`)."""
+    why, inside = hole_defect(motion.timestamps, t0, t1)
+    if why is not None or inside is None:
+        return why
+    ts = torch.as_tensor(motion.timestamps, dtype=torch.float64)
+    dt = ts.diff()
     step = torch.as_tensor(motion.trans, dtype=torch.float64).diff(dim=0).norm(dim=-1)[inside]
     speed = step / dt[inside]
     j = int(speed.argmax())

@@ -7,7 +7,10 @@ states them; docs/captures.md repeats them for users):
 - Window: the 4 s window starts at the capture frame nearest to the first timestamp plus the
   spec's ``window_start_s``; a sequence whose frames do not reach the last output timestamp
   (window start + window - 1/output_fps, within half a capture period) is skipped with a warning
-  naming it; a root with no usable sequence is an error.
+  naming it, and so is one with a hole in the timestamps inside that span (an interval over 2.5 x
+  the sequence's median one, :func:`window_hole`: its ground truth and observed frames would come
+  from frames far from their instants, as the motion tables skip a motion with a hole); a root with
+  no usable sequence is an error.
 - Observed frames: at a cell's rate F, the capture frame nearest in time to each instant
   t0 + k / F, k = 0 .. window*F - 1. When the capture rate is a multiple of F this is "keep every
   k-th frame", exactly the synthetic rule; otherwise the largest time offset is recorded per
@@ -70,6 +73,19 @@ def load_scan_sequences(spec: dict, data: str) -> dict:
     if short:
         log.warning("skipping %d scan sequence(s) shorter than the %.1f s window (frames must reach %.3f s): %s",
                     len(short), window, start + window - 1.0 / out_fps, "; ".join(short))
+    holes = {}
+    for sid, seq in usable.items():
+        why = window_hole(seq, start, window - 1.0 / out_fps)
+        if why is not None:
+            holes[sid] = f"{seq.timestamps_source}: {why}"
+    if holes:
+        log.warning("skipping %d scan sequence(s) with a hole in the %.1f s window: %s",
+                    len(holes), window, "; ".join(holes.values()))
+        usable = {sid: seq for sid, seq in usable.items() if sid not in holes}
+    if not usable and holes:
+        raise ValueError(f"--data {data}: none of the {len(found)} sequence folder(s) under {root} is usable: "
+                         f"{len(short)} do not cover the {window:g} s window (+{start:g} s start) and {len(holes)} "
+                         f"have a hole in it: {'; '.join(holes.values())}")
     if not usable:
         raise ValueError(f"--data {data}: none of the {len(found)} sequence folder(s) under {root} covers the "
                          f"{window:g} s window (+{start:g} s start); capture longer sequences")
@@ -77,6 +93,21 @@ def load_scan_sequences(spec: dict, data: str) -> dict:
     print(f"scans: {len(usable)} sequences under {root} (capture rates {', '.join(f'{r:g}' for r in rates)} fps, "
           f"units {options.get('units', 'm')}, {options.get('up', 'y')} up)")
     return usable
+
+
+def window_hole(seq: ScanSequence, start: float, span: float) -> str | None:
+    """Why the part of ``seq`` the window reads (from its first frame at or nearest ``start`` s after
+    the first timestamp, for ``span`` s: the last output instant) spans a hole in the timestamps, or
+    None (:func:`benchmark.core.plausibility.hole_defect`: an interval over 2.5 x the median one).
+    Across a hole the ground truth and the observed frames would come from frames far from their
+    instants, so such a sequence is left out, as a motion with a hole is."""
+    from benchmark.core.plausibility import hole_defect
+
+    idx, _ = seq.nearest_frames(np.array([seq.timestamps[0] + start]))
+    t0 = float(seq.timestamps[idx[0]])
+    why, _ = hole_defect(seq.timestamps, t0, t0 + span,
+                         fix="split the capture at the hole into two sequence folders, or capture the missing frames")
+    return why
 
 
 class ScanCompletionData:
