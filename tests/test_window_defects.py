@@ -88,3 +88,18 @@ def test_default_split_loses_no_motion():
     motions = build_split("test")
     assert len(motions) == 170
     assert [m.source for m in motions if window_defect(m, -1e9, 1e9) is not None] == []
+
+
+def test_a_plug_in_protocol_s_default_loader_checks_its_window(folder, caplog):
+    """A table added by entry point that keeps the default ``Protocol.load_motions`` gets the same
+    check over its spec's window (``window_start_s`` + ``window_s``)."""
+    from benchmark.protocols.base import Protocol
+
+    spec = {"data": {"window_s": 2.0}}
+    with caplog.at_level(logging.WARNING, logger="benchmark.data.table_data"):
+        motions = Protocol().load_motions(spec, str(folder), None)
+    assert sorted(motions) == ["after.npz", "clean.npz", "late_hole.npz"]  # the late hole lies after 2 s
+    assert "frames are missing between 0.967 s and 2.000 s" in caplog.text
+    spec["data"]["window_start_s"] = 2.5  # 2.5-4.5 s: only the late hole is read
+    assert sorted(Protocol().load_motions(spec, str(folder), None)) == ["after.npz", "clean.npz", "hole.npz",
+                                                                        "teleport.npz"]

@@ -52,10 +52,16 @@ class Protocol:
 
     def load_motions(self, spec: dict, data: str | None, body) -> dict:
         """The test motions by id: the synthetic test split (``data`` None) or ``--data``, each
-        at least ``spec["data"]["window_s"]`` long, shapes adapted to ``body``."""
+        at least ``spec["data"]["window_s"]`` long, shapes adapted to ``body``; a motion with a hole
+        in its timestamps or a root teleport within its first ``window_s`` (after
+        ``data.window_start_s``, where the spec has one) is skipped with a warning, as in the
+        project's tables (:func:`benchmark.data.table_data.skip_defects`). A protocol that reads
+        another part of its motions overrides this and checks that part."""
         from benchmark.data.table_data import load_motions
 
-        return load_motions(data, float(spec["data"]["window_s"]), body)
+        d = spec["data"]
+        window = float(d["window_s"])
+        return load_motions(data, window, body, window=(float(d.get("window_start_s", 0.0)), window))
 
     def make_source(self, spec: dict, body, motions_by_id: dict, seed: int):
         """The data source the units read (builds and caches unit inputs); picklable."""
