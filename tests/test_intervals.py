@@ -211,6 +211,28 @@ def test_markdown_shows_intervals_and_marks_significant_wins(table):
     assert not any(" ± " in l for l in lines if l.startswith("| "))
 
 
+def test_a_win_the_table_cannot_print_is_not_marked(table):
+    """A paired difference that excludes 0 but is under half the last printed digit (two runs of one
+    fit differing by float rounding: 57.9003 against 57.9 mm) is a tie on the page: no mark in the
+    Markdown, the LaTeX or the report; the JSON keeps the comparison."""
+    import copy
+
+    from benchmark.run.writers import significant_win
+
+    t = copy.deepcopy(table)
+    c = _cell(t, "hmvae")
+    comparison = c["paired"]["chamfer_mm"]["no_prior"]
+    assert significant_win(c, "chamfer_mm")
+    comparison.update(diff=-0.0003, ci95=[-0.0006, -0.00004])  # still "significant" and "better"
+    assert comparison["significant"] is True and not significant_win(c, "chamfer_mm")
+    row = next(l for l in format_markdown(t).splitlines() if l.startswith("| hmvae |"))
+    assert SIGNIFICANT_MARK not in row.split(" | ")[1]
+    assert r"$^\dagger$" not in next(l for l in format_latex(t).splitlines()
+                                        if l.startswith("hmvae & ") and "scriptsize" in l).split(" & ")[1]
+    comparison.update(diff=-0.05)  # half a printed digit (0.1 mm): shown as a win
+    assert significant_win(c, "chamfer_mm")
+
+
 def test_csv_and_latex_carry_the_interval_and_the_comparisons(table):
     rows = list(csv.DictReader(io.StringIO(format_csv(table))))
     c = _cell(table, "hmvae")

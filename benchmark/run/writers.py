@@ -17,6 +17,7 @@ Numbers arrive already in reported units (the derivation converted them); nothin
 from __future__ import annotations
 
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -102,10 +103,26 @@ def format_interval(interval, name: str) -> str:
     return f"[{format_number(lo, name)}, {format_number(hi, name)}]"
 
 
+def printed_step(value: float, name: str) -> float:
+    """The size of one unit in the last digit :func:`format_number` prints of ``value``."""
+    if metric_unit(name) in ("mm", "cm"):
+        return 0.1
+    return 10.0 ** (math.floor(math.log10(abs(value))) - 2) if value else 0.0
+
+
 def significant_win(cell: Mapping, metric: str) -> bool:
-    """Whether the cell beats ``no-prior`` on ``metric`` with a paired interval that excludes 0."""
+    """Whether the cell beats ``no-prior`` on ``metric`` with a paired interval that excludes 0, by
+    a mean difference of at least half a unit of the cell's last printed digit: a difference the
+    table cannot show (two runs of one fit that differ by float rounding, 57.9003 against 57.9 mm)
+    is a tie on the page, however consistent its sign, and is not marked. The table JSON keeps
+    the comparison itself (``paired``: ``diff``, ``ci95``, ``significant``)."""
     comparison = ((cell.get("paired") or {}).get(metric) or {}).get("no_prior") or {}
-    return comparison.get("significant") is True and comparison.get("better") is True
+    if not (comparison.get("significant") is True and comparison.get("better") is True):
+        return False
+    diff, value = comparison.get("diff"), cell.get(metric)
+    if diff is None or value is None:
+        return True
+    return abs(float(diff)) >= 0.5 * printed_step(float(value), metric)
 
 
 def cell_text(cell: Mapping, metric: str, mark: bool = True) -> str:
@@ -144,7 +161,7 @@ def interval_note(table: Mapping) -> str:
     if any(r["prior"] == NO_PRIOR for r in table["rows"]):
         text += (f" {SIGNIFICANT_MARK}: better than `{NO_PRIOR}` in this cell, the paired {level:.0%} bootstrap "
                  f"interval of the per-sequence difference excluding 0 (claimed from {MIN_SIGNIFICANCE_SEQUENCES} "
-                 "sequences in common).")
+                 "sequences in common) and the mean difference at least half a unit of the last printed digit.")
     else:
         text += f" No `{NO_PRIOR}` row: no cell is marked as a significant win over it."
     return text
@@ -421,7 +438,7 @@ def format_latex(table: Mapping) -> str:
     if intervals:
         note = (rf"In brackets: {level * 100:.0f}\% bootstrap interval over sequences. "
                 + (rf"$^\dagger$ better than {tex_escape(NO_PRIOR)}, paired {level * 100:.0f}\% interval of the "
-                   rf"difference excluding 0 (from {MIN_SIGNIFICANCE_SEQUENCES} sequences)." if any(r["prior"] == NO_PRIOR for r in rows) else ""))
+                   rf"difference excluding 0 (from {MIN_SIGNIFICANCE_SEQUENCES} sequences), by at least half the last printed digit." if any(r["prior"] == NO_PRIOR for r in rows) else ""))
         out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize {note.strip()}}} \\")
     for reason, k in marks.items():
         out.append(rf"\multicolumn{{{n + 1}}}{{l}}{{\footnotesize $^{{{k}}}$ {tex_escape(reason)}}} \\")
