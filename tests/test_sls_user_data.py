@@ -59,6 +59,26 @@ def test_user_motions_are_cut_by_the_period_detector():
         assert c["end"] - c["start"] == pytest.approx(1.0, abs=0.04)  # the 1 s stride, to a frame
 
 
+def test_a_faster_stretch_is_cut_into_single_strides_not_pairs():
+    """A walk (1 s strides) then a run (0.59 s strides): the period detector finds the walk's 1 s,
+    and pairs of run strides (1.18 s) close like a cycle; each such pair is cut into its two strides.
+    A motion of one cadence is cut as before (the half-cycle repeat test never fires on a stride,
+    whose left and right limbs swap at half the period)."""
+    a, b = walk(6.0, freq=1.0), walk(6.0, freq=1.7)
+    run = b.poses.clone()
+    run[:, 1:3] *= 1.6  # a wider hip swing
+    mixed = Motion(poses=torch.cat([a.poses, run]), trans=torch.cat([a.trans, b.trans + a.trans[-1]]),
+                   timestamps=torch.cat([a.timestamps, b.timestamps + 6.0]), source="walk_then_run.npz")
+    cycles = sls_cycles.fallback_cycles(mixed)
+    walks = [t1 - t0 for t0, t1 in cycles if t1 <= 6.0]
+    runs = [t1 - t0 for t0, t1 in cycles if t0 >= 6.0]
+    assert len(walks) == 5 and all(d == pytest.approx(1.0, abs=0.04) for d in walks)
+    assert len(runs) == 6 and all(d == pytest.approx(1 / 1.7, abs=0.04) for d in runs)  # was 3 of 1.17 s
+    assert all(t1 <= u0 + 1e-9 for (_, t1), (u0, _) in zip(cycles, cycles[1:]))  # in order, never overlapping
+    for freq in (0.5, 1.0, 1.7):  # one cadence: every cycle one stride
+        assert {round((t1 - t0) * freq) for t0, t1 in sls_cycles.fallback_cycles(walk(8.0, freq=freq))} == {1}
+
+
 def test_cycle_across_missing_frames_is_left_out():
     m = walk(seconds=4.0)
     t = m.timestamps.clone()

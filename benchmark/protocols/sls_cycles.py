@@ -9,7 +9,10 @@ of the normalised mean squared difference d(L) = mean_t |x(t + L) - x(t)|^2 / (2
 motion must be periodic (d(L) < 0.5). Cycle boundaries are the local minima of the projection of x
 on its first principal direction that are the lowest within +-0.3 L (interior frames only);
 consecutive boundaries 0.85 L to 1.15 L apart whose poses agree (|x(t1) - x(t0)|^2 / (2 var x) <=
-max(0.1, 3 d(L))) make a cycle. Frame-quantised (20 ms at 50 fps).
+max(0.1, 3 d(L))) make a cycle; where the pose already repeats within it at a half or a third of
+its length (the same closure test), it is cut into those 2 or 3 parts: a motion whose cadence
+changes is cut at its dominant period L, and two strides of a faster part would otherwise pass as
+one cycle. Frame-quantised (20 ms at 50 fps).
 
 Which cutter: a motion whose meta holds the generator's plan (the synthetic splits) is cut by
 ``benchmark.synthetic.cycles.cycle_windows`` on that plan's gait phase; every other motion (``--data``)
@@ -80,17 +83,39 @@ def fallback_cycles(motion, min_s: float = 0.3, max_s: float = 3.0, max_cycles: 
         if not events or i - events[-1] >= 0.5 * L:
             events.append(i)
     cycles = []
+    close_max = max(0.1, 3 * float(inner[cand[0]]))
     for a, b in zip(events, events[1:]):
-        dur = float(ts[b] - ts[a])
-        closes = float((x[b] - x[a]).square().sum()) / (2 * var) <= max(0.1, 3 * float(inner[cand[0]]))
-        if 0.85 * L <= b - a <= 1.15 * L and closes and min_s - 1e-9 <= dur <= max_s + 1e-9:
-            cycles.append((float(ts[a]), float(ts[b])))
-            if max_cycles is not None and len(cycles) >= max_cycles:
-                break
+        closes = float((x[b] - x[a]).square().sum()) / (2 * var) <= close_max
+        if not (0.85 * L <= b - a <= 1.15 * L and closes):
+            continue
+        for a, b in _repeats_within(x, var, a, b, close_max):
+            if min_s - 1e-9 <= float(ts[b] - ts[a]) <= max_s + 1e-9:
+                cycles.append((float(ts[a]), float(ts[b])))
+        if max_cycles is not None and len(cycles) >= max_cycles:
+            del cycles[max_cycles:]
+            break
     if not cycles:
         _none(why, f"its joints repeat with a period of {L / fps:.2f} s, but no stretch of it returns to its "
                    f"starting pose one period later within {min_s:g}-{max_s:g} s")
     return cycles
+
+
+def _repeats_within(x: torch.Tensor, var: float, a: int, b: int, close_max: float) -> list[tuple[int, int]]:
+    """Frames [(a, b)], or the k equal parts of [a, b] when the pose signal ``x`` repeats k = 2 or 3
+    times within it: a motion whose period changes (a walk, then a run at a faster cadence) is cut
+    at the period of its dominant part, so two strides of the faster part pass as one "cycle" that
+    closes. A true cycle does not repeat within itself (over a stride the left and right limbs swap
+    at half the period, so x(t + D/2) differs from x(t)); parts shorter than 2 frames are not tried."""
+    n = b - a
+    for k in (2, 3):
+        lag = int(round(n / k))
+        if lag < 2:
+            break
+        d = float((x[a + lag: b + 1] - x[a: b + 1 - lag]).square().sum(1).mean()) / (2 * var)
+        if d <= close_max:
+            edges = [a + int(round(j * n / k)) for j in range(k + 1)]
+            return list(zip(edges, edges[1:]))
+    return [(a, b)]
 
 
 def _none(why: list | None, reason: str) -> list:
