@@ -95,16 +95,22 @@ def load_scan_sequences(spec: dict, data: str) -> dict:
     return usable
 
 
+def window_start(seq: ScanSequence, start: float) -> tuple[int, float]:
+    """(index, time) of the capture frame the window starts at: the one nearest to the first
+    timestamp plus ``start`` seconds (``data.window_start_s``)."""
+    idx, _ = seq.nearest_frames(np.array([seq.timestamps[0] + start]))
+    return int(idx[0]), float(seq.timestamps[idx[0]])
+
+
 def window_hole(seq: ScanSequence, start: float, span: float) -> str | None:
-    """Why the part of ``seq`` the window reads (from its first frame at or nearest ``start`` s after
-    the first timestamp, for ``span`` s: the last output instant) spans a hole in the timestamps, or
-    None (:func:`benchmark.core.plausibility.hole_defect`: an interval over 2.5 x the median one).
+    """Why the part of ``seq`` the window reads (from its first frame, :func:`window_start`, for
+    ``span`` s: the last output instant) spans a hole in the timestamps, or None
+    (:func:`benchmark.core.plausibility.hole_defect`: an interval over 2.5 x the median one).
     Across a hole the ground truth and the observed frames would come from frames far from their
     instants, so such a sequence is left out, as a motion with a hole is."""
     from benchmark.core.plausibility import hole_defect
 
-    idx, _ = seq.nearest_frames(np.array([seq.timestamps[0] + start]))
-    t0 = float(seq.timestamps[idx[0]])
+    _, t0 = window_start(seq, start)
     why, _ = hole_defect(seq.timestamps, t0, t0 + span,
                          fix="split the capture at the hole into two sequence folders, or capture the missing frames")
     return why
@@ -122,9 +128,7 @@ class ScanCompletionData:
         self._frames: dict = {}
 
     def _window_start(self, seq: ScanSequence) -> tuple[int, float]:
-        start = float(self.spec["data"].get("window_start_s", 0.0))
-        idx, _ = seq.nearest_frames(np.array([seq.timestamps[0] + start]))
-        return int(idx[0]), float(seq.timestamps[idx[0]])
+        return window_start(seq, float(self.spec["data"].get("window_start_s", 0.0)))
 
     def _points(self, sid: str, indices) -> list[np.ndarray]:
         seq = self.motions[sid]
