@@ -100,3 +100,60 @@ def test_fit_check_sets_the_candidate_rule_and_says_so():
     with pytest.raises(ValueError, match="--multi-start 0"):
         run_robustness("frequency-guided", multi_start=0)
     assert "multi_start" not in load_table_spec("table1")["objective"]
+
+
+def test_a_race_keeps_the_copy_lowest_at_the_first_plateau_and_holds_the_others():
+    """``optimise_to_plateau``'s ``race``: two copies per sequence of a problem whose copies reach
+    their first plateau at different heights; once both have, the lower goes on alone and the other
+    is held where it was (its variables never move again); the winner's index and step are logged."""
+    from benchmark.protocols.step_rules import optimise_to_plateau
+
+    target = torch.tensor([[1.0], [1.0], [-2.0], [-2.0]])
+    floor = torch.tensor([0.0, 3.0, 5.0, 0.5])  # sequence 0: copy 0 lower; sequence 1: copy 1 lower
+    x = torch.tensor([[4.0], [-3.0], [2.0], [3.0]], requires_grad=True)
+    trace, seen = [], []
+
+    def step_loss(step):
+        value = ((x - target) ** 2).sum(1) + floor
+        trace.append(value.detach())
+        seen.append(x.detach().clone())
+        return value.sum(), lambda: {}
+
+    rule = PlateauRule(window=10, smoothing=2, check_every=5, anneal_steps=0, reductions=2)
+    _, log = optimise_to_plateau("toy", [x], 600, 0.1, 0.1, step_loss, trace, rule, race=2)
+    race = log["race"]
+    assert race["winner"] == [0, 1] and all(s > 0 for s in race["step"])
+    steps = torch.stack(seen)
+    for loser, step in ((1, race["step"][0]), (2, race["step"][1])):
+        assert torch.equal(steps[step:, loser], steps[step:step + 1, loser].expand(len(seen) - step, 1))
+    assert not torch.equal(steps[-1, 0], steps[race["step"][0], 0])  # the winner went on descending
+    with pytest.raises(ValueError, match="whole groups"):
+        y = torch.zeros(3, 1, requires_grad=True)
+        optimise_to_plateau("toy", [y], 600, 0.1, 0.1, lambda s: (_append(trace, (y ** 2).sum(1)), lambda: {}),
+                            trace, rule, race=2)
+
+
+def _append(trace, value):
+    trace.append(value.detach())
+    return value.sum()
+
+
+def test_a_raced_fit_logs_each_choice_and_its_step(anny_body, monkeypatch):
+    """``MultiStart(choose="plateau")`` in a fit: the log names each sequence's copy and the step
+    of the choice, the state is the batch's size; the rule is refused without the plateau rule."""
+    _fresh_cache(monkeypatch)
+    batch = _walkers(anny_body, frames=4, points=60)
+    adapter = make_adapter("sequential-primitives")
+    args = dict(steps=60, lr=0.03, lambda_prior=0.01, device="cpu", loss_vertices=200, facing="observation",
+                latent_init="mean", start_search="observation")
+    rule = MultiStart(starts=2, choose="plateau")
+    state, info = fit(adapter, anny_body, batch, generator=torch.Generator().manual_seed(0), multi_start=rule,
+                      plateau=PlateauRule(window=10, smoothing=2, check_every=5, anneal_steps=5, reductions=1), **args)
+    log = info["multi_start"]
+    assert len(log["chosen"]) == 2 and len(log["chosen_at_step"]) == 2 and set(log["chosen"]) <= {0, 1}
+    assert all(v.shape[0] == 2 for v in state.latents.values()) and len(info["plateau"]["converged"]) == 2
+    with pytest.raises(ValueError, match="needs the plateau step rule"):
+        fit(adapter, anny_body, batch, generator=torch.Generator().manual_seed(0), multi_start=rule, **args)
+    assert MultiStart.from_spec({"starts": 2, "choose": "plateau"}) == rule
+    with pytest.raises(ValueError, match="choose one of end, plateau"):
+        MultiStart.from_spec({"starts": 2, "choose": "first"})

@@ -96,6 +96,9 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         raise ValueError(f"fit: unknown optimiser {optimiser!r}; choose one of {', '.join(OPTIMISERS)}")
     if optimiser == "lbfgs" and plateau is None:
         raise ValueError("fit: optimiser 'lbfgs' needs the plateau step rule (objective.step_rule: plateau)")
+    if multi_start is not None and multi_start.choose == "plateau" and (plateau is None or optimiser != "adam"):
+        raise ValueError("fit: objective.multi_start choose 'plateau' races the copies to their first plateau: it needs "
+                         "the plateau step rule (objective.step_rule: plateau) with Adam")
     if facing not in FACING_RULES:
         raise ValueError(f"fit: unknown facing rule {facing!r}; choose one of {', '.join(FACING_RULES)}")
     B, n = batch.batch_size, batch.num_observed
@@ -190,18 +193,24 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         keep = keep_held and points_per_step is None and rows_independent(value_of, adapter, B, state.shape_param.device)
         history, plateau_log = optimise_to_plateau(adapter.name, groups, steps, lr, lr_final_fraction, step_loss, objective_trace,
                                                    plateau, callback=callback, rows_loss=rows_loss if keep else None,
-                                                   row_traces=(trace, prior_trace))
+                                                   row_traces=(trace, prior_trace),
+                                                   race=K if K > 1 and multi_start.choose == "plateau" else 1)
     data_trace = torch.stack(trace) if trace else torch.zeros(0, B)
     if K > 1:  # each sequence keeps its copy with the lowest objective at the last step
         final = objective_trace[-1].detach().cpu().double().view(-1, K)
         best = final.argmin(1)
+        race = plateau_log.pop("race", None)
+        if race is not None:  # choose: plateau; the copies that had not all reached a plateau: chosen at the end
+            raced = torch.tensor(race["winner"])
+            best = torch.where(raced >= 0, raced, best)
         pick = torch.arange(final.shape[0]) * K + best
         state = select_copies(state, pick.to(single.obs_t.device), single)
         data_trace = data_trace[:, pick.to(data_trace.device)]
         plateau_log = {k: ([v[i] for i in pick.tolist()] if isinstance(v, list) and len(v) == B else v)
                        for k, v in plateau_log.items()}
         facing_log["multi_start"] = {"chosen": best.tolist(),
-                                     "objective": [[round(float(v), 4) for v in row] for row in final]}
+                                     "objective": [[round(float(v), 4) for v in row] for row in final],
+                                     **({"chosen_at_step": race["step"]} if race is not None else {})}
     return state, {"history": history, "data_trace": data_trace, **facing_log,
                    **({"plateau": plateau_log} if plateau_log else {})}
 

@@ -11,6 +11,9 @@ import torch
 from benchmark.protocols.fit_state import FitState, as_latent
 
 
+CHOOSE_RULES = ("end", "plateau")  # MultiStart.choose: after every copy's whole fit, or at the copies' first plateau
+
+
 @dataclass(frozen=True)
 class MultiStart:
     """Several starts per sequence for the priors whose start is encoded (``objective.multi_start``,
@@ -20,10 +23,19 @@ class MultiStart:
     shape), and ``starts - 2`` encoded starts with seeded Gaussian noise of
     ``noise`` (in the latents' own units: the standard priors' standard deviation) added to their
     latents; each sequence keeps the copy with the lowest objective at the last step. The encoded
-    copies share the encoded start's rigid parameters and shape."""
+    copies share the encoded start's rigid parameters and shape.
+
+    ``choose``: when a sequence's copy is chosen. ``"end"``: after every copy's whole fit (the copy
+    with the lowest objective at the last step). ``"plateau"`` (a race): once every copy of the
+    sequence has reached its first plateau (the plateau rule's first rate reduction, or its hold),
+    the copy with the lowest objective there (the mean over the rule's ``smoothing`` last steps)
+    goes on alone and the others are held where they are, so they cost no more steps
+    (:func:`benchmark.protocols.step_rules.optimise_to_plateau`'s ``race``); a sequence whose copies
+    had not all reached it at the step cap is chosen at the end."""
 
     starts: int = 1
     noise: float = 0.5
+    choose: str = "end"
 
     @classmethod
     def from_spec(cls, value) -> "MultiStart | None":
@@ -32,13 +44,15 @@ class MultiStart:
             return None
         if not isinstance(value, dict):
             raise ValueError(f"objective.multi_start: expected a mapping like {{starts: 4, noise: 0.5}}, got {value!r}")
-        unknown = set(value) - {"starts", "noise"}
+        unknown = set(value) - {"starts", "noise", "choose"}
         if unknown:
-            raise ValueError(f"objective.multi_start: unknown key(s) {sorted(unknown)}; known: starts, noise")
-        starts, noise = value.get("starts", 1), value.get("noise", 0.5)
+            raise ValueError(f"objective.multi_start: unknown key(s) {sorted(unknown)}; known: starts, noise, choose")
+        starts, noise, choose = value.get("starts", 1), value.get("noise", 0.5), value.get("choose", "end")
         if not isinstance(starts, int) or isinstance(starts, bool) or starts < 1 or not float(noise) > 0:
             raise ValueError(f"objective.multi_start: {value!r}: 'starts' must be an integer >= 1 and 'noise' > 0")
-        return cls(starts=starts, noise=float(noise))
+        if choose not in CHOOSE_RULES:
+            raise ValueError(f"objective.multi_start: choose is {choose!r}; choose one of {', '.join(CHOOSE_RULES)}")
+        return cls(starts=starts, noise=float(noise), choose=choose)
 
 
 def repeat_state(state: FitState, k: int) -> FitState:

@@ -162,7 +162,7 @@ class PlateauRule:
 
 def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, lr_final_fraction: float, step_loss,
                         trace: list, rule: PlateauRule, callback=None, rows_loss=None,
-                        row_traces: tuple = (), whole_at=None) -> tuple[list[dict], dict]:
+                        row_traces: tuple = (), whole_at=None, race: int = 1) -> tuple[list[dict], dict]:
     """Adam at the constant ``lr``, each sequence stopping at its own plateau
     (:class:`PlateauRule`), then ``rule.anneal_steps`` steps of cosine decay to
     ``lr * lr_final_fraction`` for every sequence.
@@ -185,7 +185,16 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
     ones' objective and gradient kept from their first step at the held point
     (:class:`~benchmark.protocols.kept_rows.KeptRows`): the same fit for the rows' cost.
     ``whole_at(step)``, where given, names the steps whose objective changes for every sequence
-    (e.g. re-weighted terms): they are evaluated whole and the held ones' values kept again."""
+    (e.g. re-weighted terms): they are evaluated whole and the held ones' values kept again.
+
+    ``race`` > 1: the batch is groups of that many copies of one sequence (copy-minor, as
+    :func:`benchmark.protocols.multi_start.repeat_state`). At the first check where every copy of a
+    group has reached its first plateau (a rate reduction, or its hold), the copy with the lowest
+    objective (the mean of the last ``rule.smoothing`` steps) is the group's winner and the other
+    copies are held where they are (:class:`~benchmark.protocols.multi_start.MultiStart`'s
+    ``choose: plateau``). The result's ``race`` holds each group's ``winner`` (the copy's index in
+    its group; -1 where the copies had not all reached a plateau at the cap) and the ``step`` of the
+    choice."""
     if max_steps < rule.min_descent + rule.anneal_steps:
         history = optimise(prior_name, parameters, max_steps, lr, lr_final_fraction, step_loss, callback=callback)
         B = int(trace[-1].shape[0]) if trace else 0
@@ -225,6 +234,11 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
             stage = torch.zeros(B, dtype=torch.long)
             since = torch.zeros(B, dtype=torch.long)  # descent steps since the sequence's rate last changed
             judged = torch.zeros(B, dtype=torch.bool)  # held after a whole window at its rate (not cut by the cap)
+            if race > 1 and B % race:
+                raise ValueError(f"prior {prior_name!r}: a race of {race} copies per sequence needs a batch of whole "
+                                 f"groups; got {B} rows")
+            winner = torch.full((max(B // race, 1),), -1, dtype=torch.long)
+            chosen_at = torch.full_like(winner, -1)
         since += 1
         with torch.no_grad():
             if bool(held.any()):  # the held sequences stay where they stopped
@@ -240,6 +254,8 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
                 scale_on = (rule.factor ** stage.double()).to(tensors[0].device)
             last = flat & ~down & torch.tensor(step >= rule.min_steps)
             new = last | (~held & torch.tensor(step == descent_cap))
+            if race > 1:  # the copies of a sequence that lost its race are held from here
+                new |= ~held & _race_losers(trace, rule.smoothing, race, (stage >= 1) | held | new, winner, chosen_at, step)
             if bool(new.any()):
                 decrease[new] = change[new]
                 stopped_at[new] = step
@@ -273,7 +289,27 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
            "plateau_decrease": [round(float(v), 6) for v in decrease.tolist()], "converged": converged}
     if rule.reductions:
         out["reductions"] = [int(k) for k in stage.tolist()]
+    if race > 1:
+        out["race"] = {"winner": [int(v) for v in winner.tolist()], "step": [int(v) for v in chosen_at.tolist()]}
     return history, out
+
+
+def _race_losers(trace: list, smoothing: int, race: int, reached: torch.Tensor, winner: torch.Tensor,
+                 chosen_at: torch.Tensor, step: int) -> torch.Tensor:
+    """(B,) mask of the copies that lose their group's race at this check (``optimise_to_plateau``'s
+    ``race``): in each undecided group whose copies have all ``reached`` their first plateau, every
+    copy but the one with the lowest objective over the last ``smoothing`` steps. Records the winners
+    and the step in ``winner`` and ``chosen_at`` (in place)."""
+    groups = reached.view(-1, race).all(1) & (winner < 0)
+    losers = torch.zeros(reached.shape, dtype=torch.bool)
+    if not bool(groups.any()):
+        return losers
+    recent = torch.stack([t.detach().double().cpu() for t in trace[-smoothing:]]).mean(0).view(-1, race)
+    best = recent.argmin(1)
+    winner[groups] = best[groups]
+    chosen_at[groups] = step
+    lose = groups.view(-1, 1) & (torch.arange(race).view(1, -1) != best.view(-1, 1))
+    return lose.flatten()
 
 
 STEP_RULES = ("cosine", "plateau")  # objective.step_rule: versions 1-5 cosine over the profile's steps; v6 plateau
