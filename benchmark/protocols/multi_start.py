@@ -11,6 +11,7 @@ import torch
 from benchmark.protocols.fit_state import FitState, as_latent
 
 
+AROUND_RULES = ("encoded", "own")  # MultiStart.around: the copies about the encoded start, or about the fit's own
 CHOOSE_RULES = ("end", "plateau")  # MultiStart.choose: after every copy's whole fit, or at the copies' first plateau
 
 
@@ -31,11 +32,17 @@ class MultiStart:
     the copy with the lowest objective there (the mean over the rule's ``smoothing`` last steps)
     goes on alone and the others are held where they are, so they cost no more steps
     (:func:`benchmark.protocols.step_rules.optimise_to_plateau`'s ``race``); a sequence whose copies
-    had not all reached it at the step cap is chosen at the end."""
+    had not all reached it at the step cap is chosen at the end.
+
+    ``around``: ``"encoded"`` (above); ``"own"``: no copy starts from the encoded start, whose
+    prior-free source moves with the observation's last digits (docs/table1.md): copy 0 is the
+    fit's own start, copies 1.. the own start with seeded Gaussian noise of ``noise`` on its latents
+    (its rigid parameters and shape, from the facing, shared)."""
 
     starts: int = 1
     noise: float = 0.5
     choose: str = "end"
+    around: str = "encoded"
 
     @classmethod
     def from_spec(cls, value) -> "MultiStart | None":
@@ -44,15 +51,19 @@ class MultiStart:
             return None
         if not isinstance(value, dict):
             raise ValueError(f"objective.multi_start: expected a mapping like {{starts: 4, noise: 0.5}}, got {value!r}")
-        unknown = set(value) - {"starts", "noise", "choose"}
+        unknown = set(value) - {"starts", "noise", "choose", "around"}
         if unknown:
-            raise ValueError(f"objective.multi_start: unknown key(s) {sorted(unknown)}; known: starts, noise, choose")
+            raise ValueError(f"objective.multi_start: unknown key(s) {sorted(unknown)}; known: starts, noise, choose, "
+                             "around")
+        around = value.get("around", "encoded")
+        if around not in AROUND_RULES:
+            raise ValueError(f"objective.multi_start: around is {around!r}; choose one of {', '.join(AROUND_RULES)}")
         starts, noise, choose = value.get("starts", 1), value.get("noise", 0.5), value.get("choose", "end")
         if not isinstance(starts, int) or isinstance(starts, bool) or starts < 1 or not float(noise) > 0:
             raise ValueError(f"objective.multi_start: {value!r}: 'starts' must be an integer >= 1 and 'noise' > 0")
         if choose not in CHOOSE_RULES:
             raise ValueError(f"objective.multi_start: choose is {choose!r}; choose one of {', '.join(CHOOSE_RULES)}")
-        return cls(starts=starts, noise=float(noise), choose=choose)
+        return cls(starts=starts, noise=float(noise), choose=choose, around=around)
 
 
 def repeat_state(state: FitState, k: int) -> FitState:
@@ -72,8 +83,11 @@ def vary_copies(state: FitState, start: FitState, rule: MultiStart, generator: t
     encoded start (:func:`benchmark.protocols.start_search.encoded_start` with ``copies``): copy 1
     takes every variable of ``start`` (batch B: the fit's own start before the encoded one, the
     prior's mean turned to the facing), copies 2.. the encoded latents plus seeded Gaussian noise of
-    ``rule.noise``; copy 0 stays. In place."""
+    ``rule.noise``; copy 0 stays. ``rule.around == "own"``: every copy takes ``start``'s variables,
+    and copies 1.. get the noise. In place."""
     K = rule.starts
+    own_copies = slice(None) if rule.around == "own" else slice(1, 2)
+    noisy = 1 if rule.around == "own" else 2
     pairs = [(state.latents[n], start.latents.get(n)) for n in state.latents]
     pairs += [(getattr(state, n), getattr(start, n)) for n in ("shape_param", "root", "trans", "heading", "offset")]
     for v, own in pairs:
@@ -81,14 +95,14 @@ def vary_copies(state: FitState, start: FitState, rule: MultiStart, generator: t
             continue
         view = v.view(-1, K, *v.shape[1:])
         if K > 1 and own is not None and own.shape == view[:, 1].shape:
-            view[:, 1] = own.detach().to(v)
-    if K > 2:
+            view[:, own_copies] = own.detach().to(v).unsqueeze(1)
+    if K > noisy:
         for v in state.latents.values():
             if not v.requires_grad:  # constant_latents (a window duration) are not the start's to vary
                 continue
             view = v.view(-1, K, *v.shape[1:])
-            noise = torch.randn((view.shape[0], K - 2, *v.shape[1:]), generator=generator, dtype=v.dtype)
-            view[:, 2:] += rule.noise * noise.to(v.device)
+            noise = torch.randn((view.shape[0], K - noisy, *v.shape[1:]), generator=generator, dtype=v.dtype)
+            view[:, noisy:] += rule.noise * noise.to(v.device)
 
 
 def select_copies(state: FitState, pick: torch.Tensor, like: FitState) -> FitState:
