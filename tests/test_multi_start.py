@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from benchmark.protocols.completion import fit
-from benchmark.protocols.fit_state import init_state
+from benchmark.protocols.fit_state import FitState, init_state
 from benchmark.protocols.step_rules import PlateauRule
 from benchmark.protocols.multi_start import MultiStart, select_copies, vary_copies
 from benchmark.protocols.start_search import encoded_start
@@ -99,6 +99,13 @@ def test_fit_check_sets_the_candidate_rule_and_says_so():
     assert "not table1's protocol as committed" in note
     with pytest.raises(ValueError, match="--multi-start 0"):
         run_robustness("frequency-guided", multi_start=0)
+    raced = copy.deepcopy(spec)
+    note = with_multi_start(raced, 4, "plateau", "own")
+    assert raced["objective"]["multi_start"] == {"starts": 4, "noise": MULTI_START_NOISE, "choose": "plateau",
+                                                 "around": "own"}
+    assert "choose: plateau, around: own" in note
+    with pytest.raises(ValueError, match="add --multi-start K"):
+        run_robustness("frequency-guided", around="own")
     assert "multi_start" not in load_table_spec("table1")["objective"]
 
 
@@ -157,3 +164,29 @@ def test_a_raced_fit_logs_each_choice_and_its_step(anny_body, monkeypatch):
     assert MultiStart.from_spec({"starts": 2, "choose": "plateau"}) == rule
     with pytest.raises(ValueError, match="choose one of end, plateau"):
         MultiStart.from_spec({"starts": 2, "choose": "first"})
+
+
+def test_copies_about_the_own_start_take_no_encoded_start():
+    """``around: own``: every copy starts from the fit's own start (its rigid parameters and
+    shape), copy 0 exactly, the others with seeded noise on the latents; the encoded rule keeps its
+    copies and its draws."""
+    own = FitState(adapter=None, latents={"z": torch.zeros(2, 3)}, shape_param=torch.ones(2, 1),
+                   obs_t=torch.zeros(2, 1), window_s=1.0, root=torch.full((2, 1, 3), 0.5))
+    def copies():
+        return FitState(adapter=None, latents={"z": torch.full((8, 3), 7.0, requires_grad=True)},
+                        shape_param=torch.full((8, 1), 3.0), obs_t=torch.zeros(8, 1), window_s=1.0,
+                        root=torch.full((8, 1, 3), 9.0))
+    state = copies()
+    with torch.no_grad():
+        vary_copies(state, own, MultiStart(starts=4, around="own"), torch.Generator().manual_seed(0))
+    z = state.latents["z"].detach().view(2, 4, 3)
+    assert torch.equal(z[:, 0], own.latents["z"]) and (z[:, 1:].abs() > 0).all() and 0.2 < float(z[:, 1:].std()) < 1.0
+    assert torch.equal(state.shape_param, torch.ones(8, 1)) and torch.equal(state.root, torch.full((8, 1, 3), 0.5))
+    enc = copies()
+    with torch.no_grad():
+        vary_copies(enc, own, MultiStart(starts=4), torch.Generator().manual_seed(0))
+    z = enc.latents["z"].detach().view(2, 4, 3)
+    assert torch.equal(z[:, 0], torch.full((2, 3), 7.0)) and torch.equal(z[:, 1], own.latents["z"])
+    assert torch.equal(enc.root.view(2, 4, 1, 3)[:, 0], torch.full((2, 1, 3), 9.0))
+    with pytest.raises(ValueError, match="choose one of encoded, own"):
+        MultiStart.from_spec({"starts": 2, "around": "mean"})

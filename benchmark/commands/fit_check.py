@@ -29,6 +29,10 @@ def add_command(sub) -> None:
                    help="with --multi-start: keep each sequence's copy with the lowest objective at the end of every "
                         "copy's fit (end), or race the copies to their first plateau and go on with the lowest alone "
                         "(plateau): objective.multi_start.choose (docs/protocol.md)")
+    p.add_argument("--around", default="encoded", choices=("encoded", "own"),
+                   help="with --multi-start: the copies about the encoded prior-free start and the fit's own start "
+                        "(encoded), or about the fit's own start alone, with seeded noise (own): "
+                        "objective.multi_start.around (docs/protocol.md)")
     p.add_argument("--rate-scaled", action="store_true",
                    help="judge each plateau at a reduced rate against the tolerance scaled by that rate: the candidate "
                         "rule objective.plateau.rate_scaled (docs/protocol.md), not table1's protocol as committed")
@@ -53,7 +57,8 @@ def add_command(sub) -> None:
                 raise ValueError("fit-check: --robustness checks table1's own rules; drop --start-search")
             return run_robustness(prior=args.prior, profile_name=args.profile, device=resolve_device(args.device),
                                   out=args.out, jobs=args.jobs, base_run=args.base_run, multi_start=args.multi_start,
-                                  rate_scaled=args.rate_scaled, optimiser=args.optimiser, choose=args.choose)
+                                  rate_scaled=args.rate_scaled, optimiser=args.optimiser, choose=args.choose,
+                             around=args.around)
         if args.base_run is not None:
             raise ValueError("fit-check: --base-run gives the base fits of --robustness; add --robustness or drop it")
 
@@ -61,6 +66,7 @@ def add_command(sub) -> None:
         return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,
                              device=resolve_device(args.device), out=args.out, jobs=args.jobs,
                              start_search=args.start_search, multi_start=args.multi_start,
-                             rate_scaled=args.rate_scaled, optimiser=args.optimiser, choose=args.choose)
+                             rate_scaled=args.rate_scaled, optimiser=args.optimiser, choose=args.choose,
+                             around=args.around)
 
     p.set_defaults(func=run)

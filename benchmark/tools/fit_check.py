@@ -25,22 +25,23 @@ TARGETS = {"mpjpe_mm": 40.0, "chamfer_mm": 12.0, "root_err_deg_max": 10.0, "back
 MULTI_START_NOISE = 0.5  # fit-check --multi-start's noise on the encoded copies (objective.multi_start)
 
 
-def with_multi_start(spec: dict, starts: int | None, choose: str = "end") -> str:
-    """Set ``objective.multi_start`` to ``starts`` copies chosen by ``choose`` (``--multi-start``,
-    ``--choose``: a candidate rule, docs/protocol.md) in the table spec ``spec``; returns the note
-    the report prints ("" for None)."""
+def with_multi_start(spec: dict, starts: int | None, choose: str = "end", around: str = "encoded") -> str:
+    """Set ``objective.multi_start`` to ``starts`` copies about ``around``, chosen by ``choose``
+    (``--multi-start``, ``--around``, ``--choose``: a candidate rule, docs/protocol.md) in the table
+    spec ``spec``; returns the note the report prints ("" for None)."""
     if starts is None:
-        if choose != "end":
-            raise ValueError(f"fit-check: --choose {choose} picks among several starts; add --multi-start K")
+        if choose != "end" or around != "encoded":
+            raise ValueError("fit-check: --choose and --around shape several starts; add --multi-start K")
         return ""
     from benchmark.protocols.multi_start import MultiStart
 
     if isinstance(starts, bool) or not isinstance(starts, int) or starts < 1:
         raise ValueError(f"fit-check: --multi-start {starts!r}: give the number of starts, an integer >= 1")
     spec["objective"]["multi_start"] = {"starts": starts, "noise": MULTI_START_NOISE,
-                                        **({"choose": choose} if choose != "end" else {})}
+                                        **({"choose": choose} if choose != "end" else {}),
+                                        **({"around": around} if around != "encoded" else {})}
     MultiStart.from_spec(spec["objective"]["multi_start"])
-    shown = f", choose: {choose}" if choose != "end" else ""
+    shown = (f", choose: {choose}" if choose != "end" else "") + (f", around: {around}" if around != "encoded" else "")
     return (f", objective.multi_start {{starts: {starts}, noise: {MULTI_START_NOISE:g}{shown}}} (not table1's protocol "
             "as committed)")
 
@@ -90,7 +91,8 @@ def check_cell(cell: dict, targets: dict = TARGETS) -> list[tuple[str, float | N
 def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10, profile_name: str | None = None,
                   device: str = "cpu", out: str = "runs/fit-check", seed: int = 0, jobs: int | None = None,
                   targets: dict = TARGETS, start_search: str | None = None, multi_start: int | None = None,
-                  rate_scaled: bool = False, optimiser: str | None = None, choose: str = "end") -> int:
+                  rate_scaled: bool = False, optimiser: str | None = None, choose: str = "end",
+                  around: str = "encoded") -> int:
     from benchmark.body import get_body
     from benchmark.run.catalog import get_profile, load_table_spec
     from benchmark.core.outdir import OutDirLock, check_out_dir
@@ -118,7 +120,7 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
             rule_note = (f", objective.start_search {start_search} (the table spec says "
                          f"{start_search_rule(spec)}: not table1's protocol as committed)")
         spec["objective"]["start_search"] = start_search
-    rule_note += with_multi_start(spec, multi_start, choose) + with_rate_scaled(spec, rate_scaled) + with_optimiser(spec, optimiser)
+    rule_note += with_multi_start(spec, multi_start, choose, around) + with_rate_scaled(spec, rate_scaled) + with_optimiser(spec, optimiser)
     profile = get_profile(profile_name or ("full" if device.startswith("cuda") else "quick"), table="table1")
     get_prior_class(prior)
     out_dir = check_out_dir(out)
@@ -214,14 +216,14 @@ def seed_base_units(base_run, out_dir, prior: str, cells=ROBUSTNESS_CELLS) -> li
 def run_robustness(prior: str, profile_name: str | None = None, device: str = "cpu", out: str = "runs/fit-check",
                    seed: int = 0, jobs: int | None = None, base_run: str | None = None,
                    multi_start: int | None = None, rate_scaled: bool = False, optimiser: str | None = None,
-                   choose: str = "end") -> int:
+                   choose: str = "end", around: str = "encoded") -> int:
     """``fit-check --robustness``: ``prior`` on table1's sparsest and densest cell under the
     profile's sequences and rules (the base), then under each probe of :func:`robustness_specs`.
     Prints each cell's MPJPE and how far each probe moves it; exit 1 when a move exceeds
     MAX_MOVE_MM (a number a float perturbation or more steps moves by more measures the optimiser,
     not the prior). ``base_run``: a table1 run folder whose units serve as the base fits
     (:func:`seed_base_units`). ``multi_start``: check the candidate rule of that many starts
-    (:func:`with_multi_start`, chosen by ``choose``) instead of table1's own; ``rate_scaled``: the candidate plateau rule of
+    (:func:`with_multi_start`, about ``around``, chosen by ``choose``) instead of table1's own; ``rate_scaled``: the candidate plateau rule of
     :func:`with_rate_scaled`; ``optimiser``: :func:`with_optimiser`'s."""
     from pathlib import Path
 
@@ -236,7 +238,7 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
         raise ValueError("fit-check --robustness: table1's objective.step_rule is not 'plateau' (protocol v6); "
                          "the longer probe needs the plateau rule")
     spec.pop("paper", None)  # the paper's columns are not this run's grid
-    rule_note = with_multi_start(spec, multi_start, choose) + with_rate_scaled(spec, rate_scaled) + with_optimiser(spec, optimiser)
+    rule_note = with_multi_start(spec, multi_start, choose, around) + with_rate_scaled(spec, rate_scaled) + with_optimiser(spec, optimiser)
     profile = get_profile(profile_name or ("full" if device.startswith("cuda") else "quick"), table="table1")
     get_prior_class(prior)
     out_dir = check_out_dir(out)
