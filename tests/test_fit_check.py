@@ -175,3 +175,20 @@ def test_cli_base_run_needs_robustness_and_an_existing_run(tmp_path, capsys):
                  "--out", str(tmp_path / "o2")]) == 2
     err = capsys.readouterr().err
     assert "no units/ folder" in err and "MPJPE" not in err
+
+
+def test_the_start_probe_reports_every_stage_and_a_deterministic_start():
+    """``fit-check --start-probe``: the facing and the three limb stages, each with the joints' move
+    per sequence and the per-frame choices on both observations; with no move the start is the
+    same computation (every move 0, the same choices); a cell outside the grid is refused."""
+    from benchmark.tools.start_probe import format_probe, start_probe
+
+    same = start_probe(100, 5, sequences=1, profile_name="smoke", offset_m=0.0)
+    assert [r["stage"] for r in same["stages"]] == ["facing", "limb stage 1", "limb stage 2", "limb stage 3"]
+    assert all(r["move_mm"] == [0.0] for r in same["stages"])
+    frames = sum(same["stages"][1]["choices"][0])
+    assert frames == 20 and all(r["choices"][0] == r["choices"][1] for r in same["stages"][1:])
+    lines = format_probe(same)
+    assert len(lines) == 6 and "limb stage 3" in lines[-1] and "moved by 0 m" in lines[0]
+    with pytest.raises(ValueError, match="not a table1 cell"):
+        start_probe(50, 5)

@@ -40,6 +40,10 @@ def add_command(sub) -> None:
                    help="lbfgs: the batched L-BFGS on the same objective, each sequence held at its plateau: the "
                         "candidate rule objective.optimiser (docs/protocol.md), not table1's protocol as committed")
 
+    p.add_argument("--start-probe", action="store_true",
+                   help="instead of a fit: the prior-free start's stages (facing, limb search) on the cell's "
+                        "observation of the quick sequences and on it moved by 1e-6 m; print how far the joints move "
+                        "after each stage (the start every encoded prior encodes)")
     p.add_argument("--robustness", action="store_true",
                    help="instead of the targets: fit the prior at table1's sparsest and densest cell, again with the "
                         "observation moved by 1e-6 m and with 3x the steps, print how far MPJPE moves; exit 1 above 1 mm")
@@ -52,6 +56,15 @@ def add_command(sub) -> None:
         from benchmark.commands.common import resolve_device
         from benchmark.tools.fit_check import run_fit_check, run_robustness
 
+        if args.start_probe:
+            from benchmark.tools.start_probe import format_probe, start_probe
+
+            if args.robustness or args.multi_start is not None or args.base_run is not None:
+                raise ValueError("fit-check: --start-probe runs the start search alone; drop --robustness, "
+                                 "--multi-start and --base-run")
+            fps = int(args.fps) if float(args.fps).is_integer() else args.fps
+            print("\n".join(format_probe(start_probe(args.points, fps, profile_name=args.profile or "quick"))))
+            return 0
         if args.robustness:
             if args.start_search is not None:
                 raise ValueError("fit-check: --robustness checks table1's own rules; drop --start-search")

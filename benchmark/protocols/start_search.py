@@ -97,12 +97,19 @@ def limb_start_search(adapter: PriorAdapter, body, batch: FitBatch, state: FitSt
     if not supports_start_search(adapter):
         return state, {"start_search": "none: not a per-frame prior with encode_motion"}
     counts = []
+    for state, stage_counts in limb_search_stages(adapter, body, batch, state, lr, lambda_prior):
+        counts.append(stage_counts)
+    return state, {"start_choice_counts": counts}
+
+
+def limb_search_stages(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, lr: float, lambda_prior: float):
+    """The stages of :func:`limb_start_search` one by one: yields ``(state, choice counts)`` after
+    each (``fit-check --start-probe`` reads the start between them)."""
     stage = 0
     while (hyps := limb_hypotheses(adapter, state, stage)) is not None:
         state, stage_counts = _best_per_frame(adapter, body, batch, state, hyps, lr, lambda_prior)
-        counts.append(stage_counts)
+        yield state, stage_counts
         stage += 1
-    return state, {"start_choice_counts": counts}
 
 
 def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, hyps: list[dict],
