@@ -134,6 +134,10 @@ def test_a_race_keeps_the_copy_lowest_at_the_first_plateau_and_holds_the_others(
     for loser, step in ((1, race["step"][0]), (2, race["step"][1])):
         assert torch.equal(steps[step:, loser], steps[step:step + 1, loser].expand(len(seen) - step, 1))
     assert not torch.equal(steps[-1, 0], steps[race["step"][0], 0])  # the winner went on descending
+    trace.clear()
+    x.data.copy_(torch.tensor([[40.0], [-30.0], [20.0], [30.0]]))  # far off: still descending at the cap
+    _, log = optimise_to_plateau("toy", [x], 30, 0.1, 0.1, step_loss, trace, rule, race=2)
+    assert log["race"] == {"winner": [-1, -1], "step": [-1, -1]}  # chosen by the caller, after the anneal
     with pytest.raises(ValueError, match="whole groups"):
         y = torch.zeros(3, 1, requires_grad=True)
         optimise_to_plateau("toy", [y], 600, 0.1, 0.1, lambda s: (_append(trace, (y ** 2).sum(1)), lambda: {}),

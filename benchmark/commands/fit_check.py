@@ -71,7 +71,7 @@ def add_command(sub) -> None:
             return run_robustness(prior=args.prior, profile_name=args.profile, device=resolve_device(args.device),
                                   out=args.out, jobs=args.jobs, base_run=args.base_run, multi_start=args.multi_start,
                                   rate_scaled=args.rate_scaled, optimiser=args.optimiser, choose=args.choose,
-                             around=args.around)
+                                  around=args.around)
         if args.base_run is not None:
             raise ValueError("fit-check: --base-run gives the base fits of --robustness; add --robustness or drop it")
 

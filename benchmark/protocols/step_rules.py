@@ -255,7 +255,10 @@ def optimise_to_plateau(prior_name: str, parameters, max_steps: int, lr: float, 
             last = flat & ~down & torch.tensor(step >= rule.min_steps)
             new = last | (~held & torch.tensor(step == descent_cap))
             if race > 1:  # the copies of a sequence that lost its race are held from here
-                new |= ~held & _race_losers(trace, rule.smoothing, race, (stage >= 1) | held | new, winner, chosen_at, step)
+                # reached: a rate cut or a hold at a plateau (a copy stopped by the cap has reached none:
+                # its group is chosen after the anneal, by the caller)
+                new |= ~held & _race_losers(trace, rule.smoothing, race, (stage >= 1) | held | last, winner, chosen_at,
+                                            step)
             if bool(new.any()):
                 decrease[new] = change[new]
                 stopped_at[new] = step
