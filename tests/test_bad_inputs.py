@@ -947,6 +947,18 @@ def _(tmp, mp):
     return ["fit-check", "--fps", "inf", "--out", str(tmp / "o")]
 
 
+@case("fit-check: --around own without --multi-start", "fit-check", "--choose and --around shape several starts",
+      "add --multi-start K")
+def _(tmp, mp):
+    return ["fit-check", "--robustness", "--prior", "frequency-guided", "--around", "own", "--out", str(tmp / "o")]
+
+
+@case("fit-check: --start-probe with --robustness", "fit-check", "--start-probe runs the start search alone",
+      "drop --robustness")
+def _(tmp, mp):
+    return ["fit-check", "--start-probe", "--robustness", "--points", "100", "--fps", "5"]
+
+
 @case("report: --workers 0", "report", "argument --workers", "0 is out of range")
 def _(tmp, mp):
     return ["report", str(_op_run_folder(tmp)), "--workers", "0"]
