@@ -56,13 +56,13 @@ def add_command(sub) -> None:
         from benchmark.commands.common import resolve_device
         from benchmark.tools.fit_check import run_fit_check, run_robustness
 
+        fps = int(args.fps) if float(args.fps).is_integer() else args.fps
         if args.start_probe:
             from benchmark.tools.start_probe import format_probe, start_probe
 
             if args.robustness or args.multi_start is not None or args.base_run is not None:
                 raise ValueError("fit-check: --start-probe runs the start search alone; drop --robustness, "
                                  "--multi-start and --base-run")
-            fps = int(args.fps) if float(args.fps).is_integer() else args.fps
             print("\n".join(format_probe(start_probe(args.points, fps, profile_name=args.profile or "quick"))))
             return 0
         if args.robustness:
@@ -74,8 +74,6 @@ def add_command(sub) -> None:
                                   around=args.around)
         if args.base_run is not None:
             raise ValueError("fit-check: --base-run gives the base fits of --robustness; add --robustness or drop it")
-
-        fps = int(args.fps) if float(args.fps).is_integer() else args.fps
         return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,
                              device=resolve_device(args.device), out=args.out, jobs=args.jobs,
                              start_search=args.start_search, multi_start=args.multi_start,

@@ -315,12 +315,18 @@ def loss_vertex_count(profile: dict) -> int | None:
     return None if value in (None, "all") else int(value)
 
 
+def cell_degrade_seed(seed: int, points, fps, sequence_ids) -> int:
+    """The seed of a cell's degradation of these sequences (the table seed, the cell as the grid
+    writes it, the sequences; never the prior: every prior of a cell sees one observation)."""
+    return stable_seed("degrade", seed, points, fps, *sequence_ids)
+
+
 def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, data_source: CompletionData, device) -> dict:
     cell = unit.cell
     data = data_source.unit_data(unit.sequence_ids)
     # The degradation depends on the table seed, the cell and the sequences, never on the prior:
     # every prior sees the same observation in a cell (same fingerprint).
-    degrade_seed = stable_seed("degrade", data_source.seed, cell["points"], cell["fps"], *unit.sequence_ids)
+    degrade_seed = cell_degrade_seed(data_source.seed, cell["points"], cell["fps"], unit.sequence_ids)
     obs_offsets = None
     if hasattr(data_source, "observe"):  # captured scans (scan_completion.py): nearest capture frames
         from benchmark.protocols.scan_completion import CellNotServed

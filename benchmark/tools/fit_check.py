@@ -22,6 +22,16 @@ import copy
 TARGETS = {"mpjpe_mm": 40.0, "chamfer_mm": 12.0, "root_err_deg_max": 10.0, "backwards": 0, "not_converged": 0}
 
 
+def grid_cell(spec: dict, points, fps, who: str) -> tuple:
+    """``points`` / ``fps`` as the table1 ``spec``'s grid writes them (the observation's seed reads
+    the cell as written: --fps 5.0 is the cell 5); a value outside the grid is refused."""
+    grid = spec["grid"]
+    if points not in grid["points"] or fps not in grid["fps"]:
+        raise ValueError(f"{who}: --points {points} / --fps {fps:g} is not a table1 cell "
+                         f"(points {grid['points']}, fps {grid['fps']}); pick one of those")
+    return next(v for v in grid["points"] if v == points), next(v for v in grid["fps"] if v == fps)
+
+
 MULTI_START_NOISE = 0.5  # fit-check --multi-start's noise on the encoded copies (objective.multi_start)
 
 
@@ -101,13 +111,7 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
 
     spec = copy.deepcopy(load_table_spec("table1"))
     spec.pop("paper", None)  # the paper's columns are not this run's one-cell grid
-    grid = spec["grid"]
-    if points not in grid["points"] or fps not in grid["fps"]:
-        raise ValueError(f"fit-check: --points {points} / --fps {fps:g} is not a table1 cell "
-                         f"(points {grid['points']}, fps {grid['fps']}); pick one of those")
-    # the grid's own values: the observation's seed reads the cell as written (--fps 5.0 is the cell 5)
-    points = next(v for v in grid["points"] if v == points)
-    fps = next(v for v in grid["fps"] if v == fps)
+    points, fps = grid_cell(spec, points, fps, "fit-check")
     spec["grid"] = {"points": [points], "fps": [fps]}
     rule_note = ""
     if start_search is not None:

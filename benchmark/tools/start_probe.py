@@ -28,25 +28,19 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
     Returns ``{"ids", "cell", "offset_m", "stages": [{"stage", "move_mm": per sequence, "choices":
     (base, moved)}], "seconds"}``."""
     from benchmark.body import get_body
-    from benchmark.core.work_units import select_sequences, stable_seed
+    from benchmark.core.work_units import select_sequences
     from benchmark.data.degrade import degrade
     from benchmark.data.table_data import load_motions
     from benchmark.protocols import completion_unit as cu
-    from benchmark.protocols.completion import observation_batch
+    from benchmark.protocols.completion import decode_output, observation_batch
     from benchmark.protocols.facing import observed_facing
-    from benchmark.protocols.fit_state import body_parameters
     from benchmark.protocols.start_search import limb_search_stages
     from benchmark.run.catalog import get_profile, load_table_spec
-    from benchmark.tools.fit_check import PERTURBATION_M
+    from benchmark.tools.fit_check import PERTURBATION_M, grid_cell
     from priors.no_prior import NoPrior
 
     spec = load_table_spec("table1")
-    grid = spec["grid"]
-    if points not in grid["points"] or fps not in grid["fps"]:
-        raise ValueError(f"fit-check --start-probe: --points {points} / --fps {fps:g} is not a table1 cell "
-                         f"(points {grid['points']}, fps {grid['fps']}); pick one of those")
-    points = next(v for v in grid["points"] if v == points)  # the grid's own values seed the observation
-    fps = next(v for v in grid["fps"] if v == fps)
+    points, fps = grid_cell(spec, points, fps, "fit-check --start-probe")
     profile = get_profile(profile_name, table="table1")
     body = get_body("anny")
     data_rules = spec["data"]
@@ -55,7 +49,7 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
     if sequences is not None:
         ids = ids[: int(sequences)]
     data = cu.make_source(spec, body, motions, seed).unit_data(ids)
-    obs = degrade(data.scans, int(points), float(fps), seed=stable_seed("degrade", seed, points, fps, *ids),
+    obs = degrade(data.scans, int(points), float(fps), seed=cu.cell_degrade_seed(seed, points, fps, ids),
                   capture_fps=float(data_rules["capture_fps"]))
     obj = spec["objective"]
     lr, lam = float(obj["lr"]), float(obj["lambda_prior"])
@@ -67,9 +61,13 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
         prior = NoPrior(device="cpu")
         state, _ = observed_facing(prior, body, batch, torch.Generator().manual_seed(0), "cpu", lr, lam,
                                    latent_init="mean")
-        out = [("facing", _joints(body, state, batch, body_parameters), None)]
+
+        def joints(st):
+            return decode_output(st, body, batch.output_timestamps)[0].joints
+
+        out = [("facing", joints(state), None)]
         for stage, (state, counts) in enumerate(limb_search_stages(prior, body, batch, state, lr, lam)):
-            out.append((f"limb stage {stage + 1}", _joints(body, state, batch, body_parameters), counts))
+            out.append((f"limb stage {stage + 1}", joints(state), counts))
         return out
 
     offset = PERTURBATION_M if offset_m is None else float(offset_m)
@@ -80,12 +78,6 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
         rows.append({"stage": name, "move_mm": [round(float(m), 3) for m in move], "choices": (ca, cb)})
     return {"ids": list(ids), "cell": f"{points} / {fps:g}", "offset_m": offset, "stages": rows,
             "seconds": time.perf_counter() - t0}
-
-
-@torch.no_grad()
-def _joints(body, state, batch, body_parameters):
-    rot, trans = body_parameters(state, batch.output_timestamps)
-    return body.skin(body.prepare(state.shape()), rot, trans).joints
 
 
 def format_probe(result: dict) -> list[str]:
