@@ -33,6 +33,16 @@ def anny_body():
     return load_anny_body("cpu")
 
 
+@pytest.fixture
+def brief_searches(monkeypatch):
+    """The facing and limb start searches cut to a few steps per hypothesis, for the tests of what
+    surrounds a search (its caches, its plumbing, a command's path), not of what it finds."""
+    from benchmark.protocols import facing, start_search
+
+    monkeypatch.setattr(start_search, "START_SEARCH_STEPS", (2, 3))
+    monkeypatch.setattr(facing, "FACING_STEPS", (2, 3))
+
+
 def pytest_addoption(parser):
     parser.addoption(
         "--update-goldens", action="store_true", default=False,

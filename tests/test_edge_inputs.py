@@ -136,7 +136,7 @@ def test_complete_checks_device_first(tmp_path, device, expect):
     assert not (tmp_path / "o").exists()
 
 
-def test_complete_a_four_second_30fps_motion(tmp_path):
+def test_complete_a_four_second_30fps_motion(tmp_path, brief_searches):
     """A 120-frame 30 fps motion lasts 4.0 s (Motion.duration), so complete's default window was 4 s,
     but its 50 fps capture needs frames up to 3.98 s and the motion ends at 3.967 s: it failed with
     'motion 0 spans 3.9667 s ... pass a shorter duration or a longer motion' (no file, no option).

@@ -29,7 +29,7 @@ def test_the_rule_reads_its_mapping_and_names_what_is_wrong():
         assert words in str(err.value) and "objective.multi_start" in str(err.value)
 
 
-def test_copies_start_encoded_at_the_own_start_and_with_seeded_noise(anny_body, monkeypatch):
+def test_copies_start_encoded_at_the_own_start_and_with_seeded_noise(anny_body, monkeypatch, brief_searches):
     _fresh_cache(monkeypatch)
     batch = _walkers(anny_body, frames=4, points=60)
     adapter = make_adapter("sequential-primitives")
@@ -61,7 +61,7 @@ def test_copies_start_encoded_at_the_own_start_and_with_seeded_noise(anny_body, 
     assert torch.equal(back.shape_param.detach(), own.shape_param.detach())
 
 
-def test_each_sequence_keeps_its_copy_with_the_lowest_objective(anny_body, monkeypatch):
+def test_each_sequence_keeps_its_copy_with_the_lowest_objective(anny_body, monkeypatch, brief_searches):
     """Three starts, fitted side by side: the log holds every copy's final objective and the chosen
     one is each sequence's lowest; the state and the per-sequence logs are the batch's size; one
     start is the fit without the rule, bit for bit."""
@@ -149,7 +149,7 @@ def _append(trace, value):
     return value.sum()
 
 
-def test_a_raced_fit_logs_each_choice_and_its_step(anny_body, monkeypatch):
+def test_a_raced_fit_logs_each_choice_and_its_step(anny_body, monkeypatch, brief_searches):
     """``MultiStart(choose="plateau")`` in a fit: the log names each sequence's copy and the step
     of the choice, the state is the batch's size; the rule is refused without the plateau rule."""
     _fresh_cache(monkeypatch)

@@ -124,7 +124,7 @@ def test_min_steps_holds_no_sequence_before_it():
     assert log["steps"] >= 3 * base["steps"] and log["converged"] == [True]
 
 
-def test_the_completion_fit_runs_under_lbfgs_with_two_starts(anny_body, monkeypatch):
+def test_the_completion_fit_runs_under_lbfgs_with_two_starts(anny_body, monkeypatch, brief_searches):
     """``fit(optimiser="lbfgs")`` on real bodies and an encoded prior, with the multi-start copies:
     the objective falls, every per-sequence log is the batch's size, the traces hold one entry per
     iteration; without the plateau rule it is refused."""

@@ -314,7 +314,8 @@ def test_v4_rules_are_in_the_spec():
     assert get_profile("quick", table="sls")["sequences"] >= 8  # as many as the other quick tables
 
 
-def test_no_prior_starts_from_the_aligned_prior_free_start_and_stops_at_its_plateau(source, cycle_motions, anny_body):
+def test_no_prior_starts_from_the_aligned_prior_free_start_and_stops_at_its_plateau(source, cycle_motions, anny_body,
+                                                                                      brief_searches):
     from benchmark.protocols.start_search import _START_CACHE
     from benchmark.run.registry import make_adapter
 
@@ -344,7 +345,7 @@ def sequence_diagnostics_of(info, state, data):
                                 plateau=info["plateau"])[0]
 
 
-def test_a_window_prior_starts_from_the_encoded_prior_free_start(source, cycle_motions, anny_body):
+def test_a_window_prior_starts_from_the_encoded_prior_free_start(source, cycle_motions, anny_body, brief_searches):
     from benchmark.run.registry import make_adapter
 
     ids = sorted(cycle_motions)[:1]

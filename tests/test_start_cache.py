@@ -30,8 +30,9 @@ def _walker_batch(anny_body, frames: int = 3, points: int = 60):
 
 
 @pytest.fixture
-def empty_memory(monkeypatch):
-    """Empty per-process caches, and a count of the searches run."""
+def empty_memory(monkeypatch, brief_searches):
+    """Empty per-process caches, and a count of the searches run (the searches cut short: these
+    tests are about where a start is kept, not what it is)."""
     monkeypatch.setattr(start_search, "_START_CACHE", start_search.OrderedDict())
     monkeypatch.setattr(facing_module, "_FACING_CACHE", facing_module.OrderedDict())
     calls = {"limbs": 0, "facing": 0}

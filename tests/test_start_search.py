@@ -169,7 +169,7 @@ def _fresh_cache(monkeypatch):
 
 
 @pytest.mark.parametrize("prior", ["sequential-primitives", pytest.param("hmvae", marks=pytest.mark.slow)])
-def test_encoded_start_is_the_prior_free_start_encoded(anny_body, monkeypatch, prior):
+def test_encoded_start_is_the_prior_free_start_encoded(anny_body, monkeypatch, prior, brief_searches):
     """A window prior (free heading and offset: sequential primitives; free root orientation and
     translation: HM-VAE) starts from the prior-free start at the output timestamps, encoded; its
     body shape; its rigid parameters set to the prior-free root and translation."""
@@ -204,7 +204,7 @@ def test_encoded_start_is_the_prior_free_start_encoded(anny_body, monkeypatch, p
     assert got_rot.shape == ref_rot.shape
 
 
-def test_encoded_start_leaves_per_frame_priors_and_is_searched_once(anny_body, monkeypatch):
+def test_encoded_start_leaves_per_frame_priors_and_is_searched_once(anny_body, monkeypatch, brief_searches):
     """Per-frame priors keep their own limb search: no-prior's fit under "observation" (its start
     served from the prior-free start's cache) is the same as under "limbs" (searched in the fit), bit
     for bit; the prior-free start runs once per observation and is served as a fresh copy."""
