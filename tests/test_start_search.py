@@ -76,9 +76,11 @@ def test_limb_hypotheses_set_the_named_joints_only(anny_body):
     assert limb_hypotheses(adapter, state, len(LIMB_START_STAGES) + 1) is None
 
 
-def test_each_frame_keeps_its_own_best_hypothesis(anny_body):
+@pytest.mark.parametrize("start_fit", ["exact", "smooth"])
+def test_each_frame_keeps_its_own_best_hypothesis(anny_body, start_fit):
     """Frames 0-3 have T-pose arms, frames 4-7 lowered arms with bent elbows; hypotheses at each
-    half's true pose: every frame keeps the one that is right for it."""
+    half's true pose: every frame keeps the one that is right for it (on the Chamfer and on the
+    soft-min Chamfer, objective.start_fit)."""
     adapter = make_adapter("no-prior")
     motion = _motion(frames=8, arms_down_from=4)
     batch, _ = _batch(anny_body, motion)
@@ -89,7 +91,7 @@ def test_each_frame_keeps_its_own_best_hypothesis(anny_body):
     first = torch.cat([true_rot[:, :4], true_rot[:, :4]], 1)  # T-pose arms everywhere
     second = torch.cat([true_rot[:, 4:], true_rot[:, 4:]], 1)  # lowered arms everywhere
     hyps = [adapter.encode_motion(r, torch.zeros(1, 8, 3), state.obs_t) for r in (first, second)]
-    out, counts = _best_per_frame(adapter, anny_body, batch, state, hyps, lr=0.03, lambda_prior=0.0)
+    out, counts = _best_per_frame(adapter, anny_body, batch, state, hyps, lr=0.03, lambda_prior=0.0, start_fit=start_fit)
     assert counts == [4, 4]
     shoulder = _rotvec(adapter, out, 16)[0, :, 2]
     assert bool((shoulder[:4].abs() < 0.4).all()) and bool((shoulder[4:] < -0.8).all()), shoulder
@@ -238,3 +240,44 @@ def test_encoded_start_leaves_per_frame_priors_and_is_searched_once(anny_body, m
     assert len(calls) == 1 and not torch.equal(a.latents["pose"], b.latents["pose"])
     c, _ = prior_free_start(anny_body, batch, g, device="cpu", lr=0.03, lambda_prior=0.01)
     assert torch.equal(b.latents["pose"], c.latents["pose"]) and len(calls) == 1
+
+
+def test_the_smooth_start_fit_searches_on_the_soft_chamfer_and_is_kept_apart(anny_body, monkeypatch, brief_searches):
+    """``objective.start_fit: smooth``: the prior-free start's brief fits run on the soft-min
+    Chamfer (and the exact rule on the Chamfer alone); the two starts are kept under different keys
+    (neither served for the other), each deterministic; an unknown value names the key."""
+    from benchmark.metrics import soft_chamfer
+    from benchmark.protocols import start_search
+
+    _fresh_cache(monkeypatch)
+    built = []
+    real = soft_chamfer.SoftChamfer
+    monkeypatch.setattr(start_search, "SoftChamfer", lambda *a: built.append(a[2]) or real(*a))
+    batch = _walkers(anny_body, frames=3, points=60, count=1)
+    g = torch.Generator().manual_seed(0)
+    args = dict(device="cpu", lr=0.03, lambda_prior=0.01)
+    exact, _ = prior_free_start(anny_body, batch, g, **args)
+    assert built == []
+    soft, log = prior_free_start(anny_body, batch, g, start_fit="smooth", **args)
+    assert built == [start_search.START_SOFTMIN_M] * (len(LIMB_START_STAGES) + 1)  # one per stage
+    assert len(start_search._START_CACHE) == 2 and not torch.equal(exact.latents["pose"], soft.latents["pose"])
+    _fresh_cache(monkeypatch)
+    again, _ = prior_free_start(anny_body, batch, g, start_fit="smooth", **args)
+    assert torch.equal(again.latents["pose"], soft.latents["pose"]) and torch.equal(again.trans, soft.trans)
+    with pytest.raises(ValueError, match="unknown objective.start_fit 'bogus'; choose one of exact, smooth"):
+        fit(make_adapter("no-prior"), anny_body, batch, steps=2, generator=g, start_fit="bogus", **args)
+
+
+def test_the_start_fit_key_is_read_checked_and_set_by_fit_check():
+    from benchmark.protocols.completion_unit import start_fit_rule
+    from benchmark.tools.fit_check import with_start_fit
+
+    assert start_fit_rule({"objective": {}}) == "exact" and start_fit_rule({"objective": {"start_fit": "smooth"}}) == "smooth"
+    with pytest.raises(ValueError, match="unknown objective.start_fit 'soft'"):
+        start_fit_rule({"objective": {"start_fit": "soft"}})
+    spec = {"objective": {}}
+    assert with_start_fit(spec, None) == "" and with_start_fit(spec, "exact") == "" and spec == {"objective": {}}
+    assert "objective.start_fit smooth (not table1's protocol as committed)" in with_start_fit(spec, "smooth")
+    assert spec["objective"]["start_fit"] == "smooth"
+    with pytest.raises(ValueError, match="--start-fit 'soft'"):
+        with_start_fit(spec, "soft")

@@ -39,6 +39,10 @@ def add_command(sub) -> None:
     p.add_argument("--optimiser", default=None, choices=("adam", "lbfgs"),
                    help="lbfgs: the batched L-BFGS on the same objective, each sequence held at its plateau: the "
                         "candidate rule objective.optimiser (docs/protocol.md), not table1's protocol as committed")
+    p.add_argument("--start-fit", default=None, choices=("exact", "smooth"),
+                   help="softmin: the start search's brief fits and choices on the soft-min Chamfer (smooth where the "
+                        "nearest neighbours change): the candidate rule objective.start_fit (docs/protocol.md), not "
+                        "table1's protocol as committed; with --start-probe, the start it probes")
 
     p.add_argument("--start-probe", action="store_true",
                    help="instead of a fit: the prior-free start's stages (facing, limb search) on the cell's "
@@ -63,7 +67,8 @@ def add_command(sub) -> None:
             if args.robustness or args.multi_start is not None or args.base_run is not None:
                 raise ValueError("fit-check: --start-probe runs the start search alone; drop --robustness, "
                                  "--multi-start and --base-run")
-            print("\n".join(format_probe(start_probe(args.points, fps, profile_name=args.profile or "quick"))))
+            print("\n".join(format_probe(start_probe(args.points, fps, profile_name=args.profile or "quick",
+                                                     start_fit=args.start_fit or "exact"))))
             return 0
         if args.robustness:
             if args.start_search is not None:
@@ -71,13 +76,13 @@ def add_command(sub) -> None:
             return run_robustness(prior=args.prior, profile_name=args.profile, device=resolve_device(args.device),
                                   out=args.out, jobs=args.jobs, base_run=args.base_run, multi_start=args.multi_start,
                                   rate_scaled=args.rate_scaled, optimiser=args.optimiser, choose=args.choose,
-                                  around=args.around)
+                                  around=args.around, start_fit=args.start_fit)
         if args.base_run is not None:
             raise ValueError("fit-check: --base-run gives the base fits of --robustness; add --robustness or drop it")
         return run_fit_check(prior=args.prior, points=args.points, fps=fps, profile_name=args.profile,
                              device=resolve_device(args.device), out=args.out, jobs=args.jobs,
                              start_search=args.start_search, multi_start=args.multi_start,
                              rate_scaled=args.rate_scaled, optimiser=args.optimiser, choose=args.choose,
-                             around=args.around)
+                             around=args.around, start_fit=args.start_fit)
 
     p.set_defaults(func=run)

@@ -61,7 +61,7 @@ class CompletionProtocol(PlateauRuleProtocol):
         "data": frozenset({"split", "window_s", "window_start_s", "capture_fps", "points_per_frame", "scan_noise_std",
                            "observation_offset_m"}),  # observation_offset_m: fit-check's perturbation probe
         "objective": frozenset({"data_term", "lambda_prior", "lr", "optimiser", "schedule", "step_rule", "plateau",
-                                "convergence", "facing", "start_search", "latent_init", "shape_init", "shape_lr_scale",
+                                "convergence", "facing", "start_search", "start_fit", "latent_init", "shape_init", "shape_lr_scale",
                                 "translation_init", "outside_observed_span", "multi_start"}),
     }
 
@@ -80,7 +80,7 @@ class SlsProtocol(PlateauRuleProtocol):
                            "anchors", "align", "points_per_scan", "scan_noise_std", "landmarks", "landmark_noise_std",
                            "observation_offset_m"}),  # the perturbation probe, as table1's
         "objective": frozenset({"form", "dense", "mocap", "time", "time_term", "adaptive", "lambda_prior", "optimiser", "lr",
-                                "lr_final_fraction", "schedule", "step_rule", "plateau", "start_search", "variables",
+                                "lr_final_fraction", "schedule", "step_rule", "plateau", "start_search", "start_fit", "variables",
                                 "facing", "shape_lr_scale", "latent_init", "convergence", "init_points",
                                 "init_scan_points", "decoding"}),
     }

@@ -36,7 +36,7 @@ from benchmark.protocols.fit_state import (FitState, batch_rows, body_parameters
                                            repeat_batch, row_frames, rows_independent, state_rows)
 from benchmark.protocols.multi_start import MultiStart, select_copies, vary_copies
 from benchmark.protocols.quasi_newton import OPTIMISERS, lbfgs_to_plateau
-from benchmark.protocols.start_search import (ENCODED_START, START_SEARCH_RULES, is_prior_free, prior_free_start,
+from benchmark.protocols.start_search import (ENCODED_START, START_SEARCH_RULES, check_start_fit, is_prior_free, prior_free_start,
                                               searched_start)
 from benchmark.protocols.step_rules import PlateauRule, optimise, optimise_to_plateau
 from priors.base import FitBatch, PriorAdapter
@@ -49,7 +49,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         callback=None, facing: str = "heading8", shape_lr_scale: float = 1.0,
         points_per_step: int | None = None, latent_init: str = "sample",
         start_search: str = "none", plateau: PlateauRule | None = None,
-        multi_start: MultiStart | None = None, optimiser: str = "adam", keep_held: bool = True) -> tuple[FitState, dict]:
+        multi_start: MultiStart | None = None, optimiser: str = "adam", keep_held: bool = True,
+        start_fit: str = "exact") -> tuple[FitState, dict]:
     """Optimise one batch (see module docstring). Returns the state and a log: ``history`` (the
     logged steps), ``data_trace`` ((steps, B) the data term of every sequence at every step, mm)
     and, with ``facing="search"``, the facing search's choices.
@@ -86,6 +87,9 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     :func:`~benchmark.protocols.fit_state.rows_independent`). False evaluates the whole batch at
     every step (the same fit to float rounding; ``perf --only plateau`` times both).
 
+    ``start_fit``: the data term of the start search's brief fits (``objective.start_fit``,
+    :data:`~benchmark.protocols.start_search.START_FITS`).
+
     ``optimiser``: ``"adam"`` (every table), or ``"lbfgs"`` (a table1 version 8 candidate, with
     ``plateau`` only): the batched L-BFGS of :mod:`benchmark.protocols.quasi_newton` on the same
     objective, every variable at once (``shape_lr_scale`` does not apply), each sequence held at its
@@ -107,9 +111,10 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     t_facing = time.perf_counter()
     if start_search not in START_SEARCH_RULES:
         raise ValueError(f"fit: unknown start search {start_search!r}; choose one of {', '.join(START_SEARCH_RULES)}")
+    check_start_fit(start_fit)
     own_start = start_search == "observation" and facing == "observation" and is_prior_free(adapter)
     if own_start:  # the prior-free start (facing, limb search) is this fit's start: computed once per observation
-        state, facing_log = prior_free_start(body, batch, generator, device, lr, lambda_prior)
+        state, facing_log = prior_free_start(body, batch, generator, device, lr, lambda_prior, start_fit=start_fit)
         state.adapter = adapter
     elif facing == "search":
         state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)
@@ -130,7 +135,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         t_search = time.perf_counter()
         copies = multi_start.starts if multi_start is not None and start_search == "observation" else 1
         state, search_log = searched_start(adapter, body, batch, state, start_search, generator, device, lr,
-                                           lambda_prior, copies=copies)
+                                           lambda_prior, copies=copies, start_fit=start_fit)
         if copies > 1 and search_log.get("start") == ENCODED_START:  # every copy holds the encoded start
             K = copies
             vary_copies(state, single, multi_start, generator)

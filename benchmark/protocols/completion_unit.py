@@ -353,7 +353,8 @@ def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, da
                       loss_vertices=loss_vertex_count(profile), facing=facing_rule(table_spec),
                       shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(table_spec),
                       start_search=start_search_rule(table_spec), plateau=plateau_rule(table_spec),
-                      multi_start=multi_start_rule(table_spec), optimiser=optimiser_rule(table_spec))
+                      multi_start=multi_start_rule(table_spec), optimiser=optimiser_rule(table_spec),
+                      start_fit=start_fit_rule(table_spec))
     t1 = time.perf_counter()
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
     sp = profile.get("surface_points", "all")
@@ -399,6 +400,14 @@ def facing_rule(spec: dict) -> str:
 def latent_init_rule(spec: dict) -> str:
     """Where the priors' latents start (``objective.latent_init``; protocol versions 1-2: ``sample``)."""
     return str(spec["objective"].get("latent_init", "sample"))
+
+
+def start_fit_rule(spec: dict) -> str:
+    """The data term of the start search's brief fits (``objective.start_fit``: ``exact``, the
+    Chamfer, when absent; ``smooth``, :data:`benchmark.protocols.start_search.START_FITS`)."""
+    from benchmark.protocols.start_search import check_start_fit
+
+    return check_start_fit(str(spec["objective"].get("start_fit", "exact")))
 
 
 def start_search_rule(spec: dict) -> str:

@@ -16,6 +16,7 @@ from collections import OrderedDict
 import roma
 import torch
 
+from benchmark.metrics.soft_chamfer import SoftChamfer
 from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.protocols.latent_checks import check_latents, prior_values
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, as_latent, body_parameters,
@@ -23,7 +24,8 @@ from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitSt
                                               set_rigid, subset_batch)
 from benchmark.protocols import start_cache
 from benchmark.protocols.multi_start import repeat_state
-from benchmark.protocols.step_rules import optimise
+from benchmark.protocols.quasi_newton import lbfgs_to_plateau
+from benchmark.protocols.step_rules import PlateauRule, optimise
 from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encoder
 
 # objective.start_search: "none"; "limbs" (table1 protocol v4): :func:`limb_start_search` for the
@@ -32,6 +34,16 @@ from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encode
 START_SEARCH_RULES = ("none", "limbs", "observation")
 ENCODED_START = "encoded prior-free start"  # encoded_start's log["start"]
 START_SEARCH_STEPS = (15, 25)  # coarse-fit steps per start hypothesis: rigid parameters only, then every variable
+# objective.start_fit: the search's brief fits and choices. "exact" (versions 4-7): on the Chamfer,
+# by Adam at the fit's rate. "smooth" (a version 8 candidate): on the soft-min Chamfer at
+# START_SOFTMIN_M (benchmark.metrics.soft_chamfer), smooth where the Chamfer's nearest neighbours
+# change, by the batched L-BFGS (benchmark.protocols.quasi_newton; as many iterations as Adam's
+# steps), whose line search does not magnify the small gradients of a flat objective as Adam's
+# normalised steps do: a search whose result does not follow the observation's last digits
+# (docs/table1.md, "A start search that does not move").
+START_FITS = ("exact", "smooth")
+START_SOFTMIN_M = 0.03
+FIXED_ITERATIONS = PlateauRule(tolerance=-1.0)  # a plateau test no fit passes: the L-BFGS runs to its cap
 # The limb start hypotheses, in stages: first each arm in the T-pose, lowered to the side, or lowered
 # with the elbow bent forward; then each leg as it is, or with the hip flexed forward and the knee
 # bent. Local rotation vectors (radians) of the left limb's joints (SMPL order); the right limb's
@@ -85,40 +97,50 @@ def limb_hypotheses(adapter: PriorAdapter, state: FitState, stage: int) -> list[
     return out
 
 
+def check_start_fit(start_fit: str) -> str:
+    """``start_fit`` when it is one of START_FITS; otherwise a ValueError naming the key and the choices."""
+    if start_fit not in START_FITS:
+        raise ValueError(f"unknown objective.start_fit {start_fit!r}; choose one of {', '.join(START_FITS)}")
+    return start_fit
+
+
 def limb_start_search(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, lr: float,
-                      lambda_prior: float) -> tuple[FitState, dict]:
+                      lambda_prior: float, start_fit: str = "exact") -> tuple[FitState, dict]:
     """A per-frame prior's start, limb by limb (table1 protocol v4, ``objective.start_search: limbs``).
 
     From ``state`` (the facing already set), stage by stage (:func:`limb_hypotheses`): every
     hypothesis is fitted briefly on a subset (FACING_POINTS observed points per frame,
     FACING_VERTICES mesh vertices; START_SEARCH_STEPS), and each observed frame keeps the
-    hypothesis with the lowest data term at that frame. A prior it does not apply to
+    hypothesis with the lowest data term at that frame (``start_fit``: that data term,
+    :data:`START_FITS`). A prior it does not apply to
     (:func:`supports_start_search`) keeps ``state``. Returns the state and the choice counts per stage."""
     if not supports_start_search(adapter):
         return state, {"start_search": "none: not a per-frame prior with encode_motion"}
     counts = []
-    for state, stage_counts in limb_search_stages(adapter, body, batch, state, lr, lambda_prior):
+    for state, stage_counts in limb_search_stages(adapter, body, batch, state, lr, lambda_prior, start_fit):
         counts.append(stage_counts)
     return state, {"start_choice_counts": counts}
 
 
-def limb_search_stages(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, lr: float, lambda_prior: float):
+def limb_search_stages(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, lr: float, lambda_prior: float,
+                       start_fit: str = "exact"):
     """The stages of :func:`limb_start_search` one by one: yields ``(state, choice counts)`` after
     each (``fit-check --start-probe`` reads the start between them)."""
+    check_start_fit(start_fit)
     stage = 0
     while (hyps := limb_hypotheses(adapter, state, stage)) is not None:
-        state, stage_counts = _best_per_frame(adapter, body, batch, state, hyps, lr, lambda_prior)
+        state, stage_counts = _best_per_frame(adapter, body, batch, state, hyps, lr, lambda_prior, start_fit)
         yield state, stage_counts
         stage += 1
 
 
 def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, hyps: list[dict],
-                    lr: float, lambda_prior: float) -> tuple[FitState, list[int]]:
+                    lr: float, lambda_prior: float, start_fit: str = "exact") -> tuple[FitState, list[int]]:
     """Per observed frame, the best of the start hypotheses ``hyps`` (latents of ``state``'s shapes,
     per observed frame along dimension 1), each fitted briefly from ``state``'s rigid parameters
     and shape. The data term is a mean over frames of terms of that frame's variables and the
     shared shape, so each frame takes its own best; the shape is that of the hypothesis with the
-    lowest mean."""
+    lowest mean. ``start_fit``: the data term (:data:`START_FITS`)."""
     K = len(hyps)
     B, n = batch.batch_size, batch.num_observed
     small = subset_batch(repeat_batch(batch, K), FACING_POINTS)
@@ -132,17 +154,27 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
                    window_s=state.window_s, root=rep(state.root), trans=rep(state.trans), heading=rep(state.heading),
                    offset=rep(state.offset), bounded_shape=state.bounded_shape)
     subset = body.loss_vertex_indices(FACING_VERTICES)
-    chamfer = StaticChamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1))
+    if start_fit == "smooth":
+        chamfer = SoftChamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1), START_SOFTMIN_M)
+    else:
+        chamfer = StaticChamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1))
 
     def frame_terms():
         return frame_chamfer(hyp, body, small, subset, chamfer) * 1000.0
 
-    def loss_of(step):
-        return (frame_terms().mean(1) + lambda_prior * prior_values(adapter, hyp.latents)).sum(), lambda: {}
+    trace = []  # (B K,) each hypothesis's objective per step: the batched L-BFGS's bookkeeping
 
-    rigid_steps, all_steps = START_SEARCH_STEPS
-    optimise(adapter.name, rigid_parameters(hyp), rigid_steps, lr, 1.0, loss_of)
-    optimise(adapter.name, hyp.parameters(), all_steps, lr, 1.0, loss_of)
+    def loss_of(step):
+        rows = frame_terms().mean(1) + lambda_prior * prior_values(adapter, hyp.latents)
+        trace.append(rows.detach())
+        return rows.sum(), lambda: {}
+
+    for params, steps in zip((rigid_parameters(hyp), hyp.parameters()), START_SEARCH_STEPS):
+        if start_fit == "smooth":  # every iteration: never held (no plateau test before the cap)
+            lbfgs_to_plateau(adapter.name, params, steps, lr, loss_of, trace, FIXED_ITERATIONS)
+        else:
+            optimise(adapter.name, params, steps, lr, 1.0, loss_of)
+        trace.clear()
     with torch.no_grad():
         scores = frame_terms().view(B, K, n)
     best = scores.argmin(1)  # (B, n)
@@ -198,11 +230,11 @@ PRIOR_FREE_FACINGS = ("observation", "aligned")
 
 
 def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, lr: float,
-                     lambda_prior: float, facing: str = "observation") -> tuple[FitState, dict]:
+                     lambda_prior: float, facing: str = "observation", start_fit: str = "exact") -> tuple[FitState, dict]:
     """The prior-free body's start on the observation (the state no-prior's fit starts from under
     ``start_search: limbs``): its facing (``facing``: ``"observation"``, found on the observation,
     :func:`benchmark.protocols.facing.observed_facing`, table1; ``"aligned"``, facing +z, the
-    facing the sls data rules give every sequence), then :func:`limb_start_search`.
+    facing the sls data rules give every sequence), then :func:`limb_start_search` (``start_fit`` as there).
     Deterministic (the prior-free body draws nothing from ``generator``); kept per process for the
     last START_CACHE_SIZE observations and served again as a fresh copy, and, within a table run, on
     disk for its other workers and its resumptions (:mod:`benchmark.protocols.start_cache`). Returns the state and the
@@ -213,6 +245,8 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
     if facing not in PRIOR_FREE_FACINGS:
         raise ValueError(f"prior_free_start: unknown facing {facing!r}; choose one of {', '.join(PRIOR_FREE_FACINGS)}")
     sizes = (repr(LIMB_START_STAGES), START_SEARCH_STEPS)
+    if check_start_fit(start_fit) != "exact":  # (the exact fit's keys as before: their stored starts stay valid)
+        sizes += (start_fit, START_SOFTMIN_M)
     process_key, run_key = facing_keys(body, batch, device, lr, lambda_prior)
     key = ("start", facing, *process_key, *sizes)
     hit = _START_CACHE.get(key)
@@ -227,7 +261,7 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
             else:
                 state, facing_log = observed_facing(ref_prior, body, batch, generator, device, lr, lambda_prior,
                                                     latent_init="mean")
-            state, search_log = limb_start_search(ref_prior, body, batch, state, lr, lambda_prior)
+            state, search_log = limb_start_search(ref_prior, body, batch, state, lr, lambda_prior, start_fit)
             stored = (state, {**facing_log, **search_log})
             start_cache.store_state(disk_key, *stored)
         hit = (body, *stored)
@@ -250,23 +284,25 @@ def _leaf_copy(state: FitState, **changes) -> FitState:
 
 def searched_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, rule: str,
                    generator: torch.Generator, device, lr: float, lambda_prior: float,
-                   facing: str = "observation", copies: int = 1) -> tuple[FitState, dict]:
-    """The start search of ``objective.start_search`` ``rule`` (``limbs`` or ``observation``) from
+                   facing: str = "observation", copies: int = 1, start_fit: str = "exact") -> tuple[FitState, dict]:
+    """The start search of ``objective.start_search`` ``rule`` (``limbs`` or ``observation``; its
+    brief fits' data term ``objective.start_fit``, ``start_fit``) from
     ``state``: :func:`limb_start_search` for the per-frame priors; under ``observation``, every other
     prior with a motion encoder starts from the prior-free start (``facing`` as in
     :func:`prior_free_start`), encoded (:func:`encoded_start`; ``copies`` as there)."""
-    state, log = limb_start_search(adapter, body, batch, state, lr, lambda_prior)
+    state, log = limb_start_search(adapter, body, batch, state, lr, lambda_prior, start_fit)
     if rule == "observation" and "start_choice_counts" not in log:
         state, log = encoded_start(adapter, body, batch, state, generator, device, lr, lambda_prior, facing=facing,
-                                   copies=copies)
+                                   copies=copies, start_fit=start_fit)
     return state, log
 
 
 def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, generator: torch.Generator, device,
-                  lr: float, lambda_prior: float, facing: str = "observation", copies: int = 1) -> tuple[FitState, dict]:
+                  lr: float, lambda_prior: float, facing: str = "observation", copies: int = 1,
+                  start_fit: str = "exact") -> tuple[FitState, dict]:
     """A window or continuous prior's start under ``start_search: observation`` (table1 protocol v5):
     the prior-free body's start on the observation (:func:`prior_free_start`: facing, then limb by
-    limb; ``facing`` as there), at the output timestamps (or, for a fixed-window prior whose latents
+    limb; ``facing`` and ``start_fit`` as there), at the output timestamps (or, for a fixed-window prior whose latents
     follow its own frame grid and cover more, on that grid), encoded by the prior (``encode_motion``:
     the posterior mean);
     its body shape; the free rigid parameters set to its root orientation and translation at the
@@ -278,7 +314,7 @@ def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState,
     Returns the state and a log."""
     if not supports_encoded_start(adapter):
         return state, {"start_search": "none: a per-frame prior or a prior without a motion encoder"}
-    ref, ref_log = prior_free_start(body, batch, generator, device, lr, lambda_prior, facing=facing)
+    ref, ref_log = prior_free_start(body, batch, generator, device, lr, lambda_prior, facing=facing, start_fit=start_fit)
     if copies > 1:
         ref, state, batch = repeat_state(ref, copies), repeat_state(state, copies), repeat_batch(batch, copies)
 

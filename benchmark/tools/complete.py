@@ -208,7 +208,7 @@ def _complete(args, out: Path, earlier: list[str], t_begin: float) -> dict:
     from benchmark.run.catalog import get_profile, load_table_spec
     from benchmark.core.motion import Motion
     from benchmark.protocols.completion import decode_output, fit, observation_batch
-    from benchmark.protocols.completion_unit import latent_init_rule, loss_vertex_count, start_search_rule
+    from benchmark.protocols.completion_unit import latent_init_rule, loss_vertex_count, start_fit_rule, start_search_rule
     from benchmark.protocols.step_rules import plateau_rule
     from benchmark.run.registry import make_adapter
     from benchmark.synthetic.scan_set import write_ply_mesh
@@ -236,7 +236,7 @@ def _complete(args, out: Path, earlier: list[str], t_begin: float) -> dict:
                       generator=torch.Generator().manual_seed(args.seed), device=device,
                       loss_vertices=loss_vertex_count(profile), facing=args.facing,
                       shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=latent_init_rule(spec),
-                      start_search=start_search_rule(spec), plateau=plateau_rule(spec))
+                      start_search=start_search_rule(spec), plateau=plateau_rule(spec), start_fit=start_fit_rule(spec))
     fit_s = time.perf_counter() - t0
     output, rot, trans = decode_output(state, body, batch.output_timestamps)
 

@@ -85,6 +85,20 @@ def with_optimiser(spec: dict, optimiser: str | None) -> str:
     return f", objective.optimiser {optimiser} (not table1's protocol as committed)"
 
 
+def with_start_fit(spec: dict, start_fit: str | None) -> str:
+    """Set ``objective.start_fit`` (``--start-fit``: ``smooth`` is a candidate rule, docs/protocol.md)
+    in the table spec ``spec``; returns the note the report prints ("" for None or the spec's own)."""
+    from benchmark.protocols.completion_unit import start_fit_rule
+    from benchmark.protocols.start_search import START_FITS
+
+    if start_fit is None or start_fit == start_fit_rule(spec):
+        return ""
+    if start_fit not in START_FITS:
+        raise ValueError(f"fit-check: --start-fit {start_fit!r}: choose one of {', '.join(START_FITS)}")
+    spec["objective"]["start_fit"] = start_fit
+    return f", objective.start_fit {start_fit} (not table1's protocol as committed)"
+
+
 def check_cell(cell: dict, targets: dict = TARGETS) -> list[tuple[str, float | None, float, bool]]:
     """(figure, value, target, passed) for each target, from a derived table cell."""
     diag = cell.get("diagnostics") or {}
@@ -102,7 +116,7 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
                   device: str = "cpu", out: str = "runs/fit-check", seed: int = 0, jobs: int | None = None,
                   targets: dict = TARGETS, start_search: str | None = None, multi_start: int | None = None,
                   rate_scaled: bool = False, optimiser: str | None = None, choose: str = "end",
-                  around: str = "encoded") -> int:
+                  around: str = "encoded", start_fit: str | None = None) -> int:
     from benchmark.body import get_body
     from benchmark.run.catalog import get_profile, load_table_spec
     from benchmark.core.outdir import OutDirLock, check_out_dir
@@ -124,7 +138,8 @@ def run_fit_check(prior: str = "no-prior", points: int = 10000, fps: float = 10,
             rule_note = (f", objective.start_search {start_search} (the table spec says "
                          f"{start_search_rule(spec)}: not table1's protocol as committed)")
         spec["objective"]["start_search"] = start_search
-    rule_note += with_multi_start(spec, multi_start, choose, around) + with_rate_scaled(spec, rate_scaled) + with_optimiser(spec, optimiser)
+    rule_note += (with_multi_start(spec, multi_start, choose, around) + with_rate_scaled(spec, rate_scaled)
+                  + with_optimiser(spec, optimiser) + with_start_fit(spec, start_fit))
     profile = get_profile(profile_name or ("full" if device.startswith("cuda") else "quick"), table="table1")
     get_prior_class(prior)
     out_dir = check_out_dir(out)
@@ -220,7 +235,7 @@ def seed_base_units(base_run, out_dir, prior: str, cells=ROBUSTNESS_CELLS) -> li
 def run_robustness(prior: str, profile_name: str | None = None, device: str = "cpu", out: str = "runs/fit-check",
                    seed: int = 0, jobs: int | None = None, base_run: str | None = None,
                    multi_start: int | None = None, rate_scaled: bool = False, optimiser: str | None = None,
-                   choose: str = "end", around: str = "encoded") -> int:
+                   choose: str = "end", around: str = "encoded", start_fit: str | None = None) -> int:
     """``fit-check --robustness``: ``prior`` on table1's sparsest and densest cell under the
     profile's sequences and rules (the base), then under each probe of :func:`robustness_specs`.
     Prints each cell's MPJPE and how far each probe moves it; exit 1 when a move exceeds
@@ -228,7 +243,7 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
     not the prior). ``base_run``: a table1 run folder whose units serve as the base fits
     (:func:`seed_base_units`). ``multi_start``: check the candidate rule of that many starts
     (:func:`with_multi_start`, about ``around``, chosen by ``choose``) instead of table1's own; ``rate_scaled``: the candidate plateau rule of
-    :func:`with_rate_scaled`; ``optimiser``: :func:`with_optimiser`'s."""
+    :func:`with_rate_scaled`; ``optimiser``: :func:`with_optimiser`'s; ``start_fit``: :func:`with_start_fit`'s."""
     from pathlib import Path
 
     from benchmark.body import get_body
@@ -242,7 +257,8 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
         raise ValueError("fit-check --robustness: table1's objective.step_rule is not 'plateau' (protocol v6); "
                          "the longer probe needs the plateau rule")
     spec.pop("paper", None)  # the paper's columns are not this run's grid
-    rule_note = with_multi_start(spec, multi_start, choose, around) + with_rate_scaled(spec, rate_scaled) + with_optimiser(spec, optimiser)
+    rule_note = (with_multi_start(spec, multi_start, choose, around) + with_rate_scaled(spec, rate_scaled)
+                 + with_optimiser(spec, optimiser) + with_start_fit(spec, start_fit))
     profile = get_profile(profile_name or ("full" if device.startswith("cuda") else "quick"), table="table1")
     get_prior_class(prior)
     out_dir = check_out_dir(out)

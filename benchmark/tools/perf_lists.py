@@ -68,7 +68,7 @@ def lists_compare(points: int = 10000, fps: int = 5, prior: str = "no-prior") ->
             lambda_prior=float(obj["lambda_prior"]), generator=torch.Generator().manual_seed(0), device="cpu",
             loss_vertices=cu.loss_vertex_count(profile), callback=window, facing=cu.facing_rule(spec),
             shape_lr_scale=float(obj.get("shape_lr_scale", 1.0)), latent_init=cu.latent_init_rule(spec),
-            start_search=cu.start_search_rule(spec), plateau=plateau_rule(spec),
+            start_search=cu.start_search_rule(spec), start_fit=cu.start_fit_rule(spec), plateau=plateau_rule(spec),
             multi_start=cu.multi_start_rule(spec), optimiser=cu.optimiser_rule(spec))
     finally:
         sc.StaticChamfer._grid_indices = original

@@ -21,10 +21,10 @@ import torch
 
 
 def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None, profile_name: str = "quick",
-                seed: int = 0, offset_m: float | None = None) -> dict:
+                seed: int = 0, offset_m: float | None = None, start_fit: str = "exact") -> dict:
     """The prior-free start's stages on table1's ``points`` / ``fps`` observation of the profile's
     first batch (``sequences``: at most that many of it), and on it moved by ``offset_m`` (default
-    PERTURBATION_M).
+    PERTURBATION_M); ``start_fit``: the search's data term (``objective.start_fit``).
     Returns ``{"ids", "cell", "offset_m", "stages": [{"stage", "move_mm": per sequence, "choices":
     (base, moved)}], "seconds"}``."""
     from benchmark.body import get_body
@@ -66,7 +66,7 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
             return decode_output(st, body, batch.output_timestamps)[0].joints
 
         out = [("facing", joints(state), None)]
-        for stage, (state, counts) in enumerate(limb_search_stages(prior, body, batch, state, lr, lam)):
+        for stage, (state, counts) in enumerate(limb_search_stages(prior, body, batch, state, lr, lam, start_fit)):
             out.append((f"limb stage {stage + 1}", joints(state), counts))
         return out
 
@@ -76,14 +76,15 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
     for (name, ja, ca), (_, jb, cb) in zip(base, moved):
         move = ((ja - jb).norm(dim=-1).mean((1, 2)) * 1000.0).tolist()
         rows.append({"stage": name, "move_mm": [round(float(m), 3) for m in move], "choices": (ca, cb)})
-    return {"ids": list(ids), "cell": f"{points} / {fps:g}", "offset_m": offset, "stages": rows,
+    return {"ids": list(ids), "cell": f"{points} / {fps:g}", "offset_m": offset, "stages": rows, "start_fit": start_fit,
             "seconds": time.perf_counter() - t0}
 
 
 def format_probe(result: dict) -> list[str]:
     """The probe's lines: per stage, the joints' move per sequence and the choices on both observations."""
     lines = [f"fit-check --start-probe: the prior-free start at table1 {result['cell']}, {len(result['ids'])} "
-             f"sequence(s), on the observation and on it moved by {result['offset_m']:g} m ({result['seconds']:.0f} s)",
+             f"sequence(s), start_fit {result.get('start_fit', 'exact')}, on the observation and on it moved by "
+             f"{result['offset_m']:g} m ({result['seconds']:.0f} s)",
              f"{'stage':<16}{'joints moved, mm (mean; per sequence)':<60}choices (observation | moved)"]
     for row in result["stages"]:
         moves = row["move_mm"]
