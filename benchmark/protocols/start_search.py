@@ -140,7 +140,9 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
     per observed frame along dimension 1), each fitted briefly from ``state``'s rigid parameters
     and shape. The data term is a mean over frames of terms of that frame's variables and the
     shared shape, so each frame takes its own best; the shape is that of the hypothesis with the
-    lowest mean. ``start_fit``: the data term (:data:`START_FITS`)."""
+    lowest mean. ``start_fit``: the data term and optimiser (:data:`START_FITS`; under ``smooth``
+    the frames of a hypothesis share the L-BFGS's curvature pairs and line search, so a frame's fit
+    is no longer alone; its choice still is)."""
     K = len(hyps)
     B, n = batch.batch_size, batch.num_observed
     small = subset_batch(repeat_batch(batch, K), FACING_POINTS)
