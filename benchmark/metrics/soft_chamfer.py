@@ -1,5 +1,5 @@
 """A soft-min Chamfer against a fixed point set (:class:`SoftChamfer`): the start search's smooth
-data term (``objective.start_fit: soft``, a table1 version 8 candidate, docs/protocol.md).
+data term (``objective.start_fit: smooth``, a table1 version 8 candidate, docs/protocol.md).
 
 The Chamfer of :func:`benchmark.metrics.chamfer.chamfer_loss` takes, for each point, the distance
 to its nearest neighbour: a function whose gradient jumps wherever the nearest neighbour changes.

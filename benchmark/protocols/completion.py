@@ -87,8 +87,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     :func:`~benchmark.protocols.fit_state.rows_independent`). False evaluates the whole batch at
     every step (the same fit to float rounding; ``perf --only plateau`` times both).
 
-    ``start_fit``: the data term of the start search's brief fits (``objective.start_fit``,
-    :data:`~benchmark.protocols.start_search.START_FITS`).
+    ``start_fit``: the start search's brief fits, their data term and optimiser
+    (``objective.start_fit``, :data:`~benchmark.protocols.start_search.START_FITS`).
 
     ``optimiser``: ``"adam"`` (every table), or ``"lbfgs"`` (a table1 version 8 candidate, with
     ``plateau`` only): the batched L-BFGS of :mod:`benchmark.protocols.quasi_newton` on the same

@@ -129,7 +129,7 @@ def sls_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, obj
     rule = str(objective.get("start_search", "none"))
     if rule not in START_SEARCH_RULES:
         raise ValueError(f"sls: unknown objective.start_search {rule!r}; choose one of {', '.join(START_SEARCH_RULES)}")
-    start_fit = check_start_fit(str(objective.get("start_fit", "exact")))  # the brief fits' data term (as table1's)
+    start_fit = check_start_fit(str(objective.get("start_fit", "exact")))  # the search's brief fits (as table1's)
     if rule == "none":
         return state, {}
     if rule == "observation" and is_prior_free(adapter):  # its start is the prior-free start, cached per observation

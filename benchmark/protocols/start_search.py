@@ -111,8 +111,8 @@ def limb_start_search(adapter: PriorAdapter, body, batch: FitBatch, state: FitSt
     From ``state`` (the facing already set), stage by stage (:func:`limb_hypotheses`): every
     hypothesis is fitted briefly on a subset (FACING_POINTS observed points per frame,
     FACING_VERTICES mesh vertices; START_SEARCH_STEPS), and each observed frame keeps the
-    hypothesis with the lowest data term at that frame (``start_fit``: that data term,
-    :data:`START_FITS`). A prior it does not apply to
+    hypothesis with the lowest data term at that frame (``start_fit``: that data term and the
+    brief fits' optimiser, :data:`START_FITS`). A prior it does not apply to
     (:func:`supports_start_search`) keeps ``state``. Returns the state and the choice counts per stage."""
     if not supports_start_search(adapter):
         return state, {"start_search": "none: not a per-frame prior with encode_motion"}
