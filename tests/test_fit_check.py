@@ -177,17 +177,15 @@ def test_cli_base_run_needs_robustness_and_an_existing_run(tmp_path, capsys):
     assert "no units/ folder" in err and "MPJPE" not in err
 
 
-def test_the_start_probe_reports_every_stage_and_a_deterministic_start(monkeypatch):
+def test_the_start_probe_reports_every_stage_and_a_deterministic_start(monkeypatch, brief_searches):
     """``fit-check --start-probe``: the facing and each limb stage, with the joints' move per
     sequence and the per-frame choices on both observations; with no move the start is the same
     computation (every move 0, the same choices); a cell outside the grid is refused. (The search's
     sizes cut for speed: one limb stage of the legs, a few steps.)"""
-    from benchmark.protocols import facing, start_search
+    from benchmark.protocols import start_search
     from benchmark.tools.start_probe import format_probe, start_probe
 
     monkeypatch.setattr(start_search, "LIMB_START_STAGES", start_search.LIMB_START_STAGES[1:])
-    monkeypatch.setattr(start_search, "START_SEARCH_STEPS", (2, 3))
-    monkeypatch.setattr(facing, "FACING_STEPS", (2, 3))
     same = start_probe(100, 5, sequences=1, profile_name="smoke", offset_m=0.0)
     assert [r["stage"] for r in same["stages"]] == ["facing", "limb stage 1", "limb stage 2"]
     assert all(r["move_mm"] == [0.0] for r in same["stages"])
