@@ -10,7 +10,7 @@ import torch
 
 from benchmark.metrics import soft_chamfer
 from benchmark.metrics.chamfer import chamfer_loss
-from benchmark.metrics.soft_chamfer import SoftChamfer
+from benchmark.metrics.soft_chamfer import SoftChamfer, reference_soft_chamfer
 
 
 def _clouds(n=3, v=40, p=25, seed=0):
@@ -69,6 +69,31 @@ def test_smooth_where_the_chamfer_jumps():
     assert abs(grads["soft"][0] - grads["soft"][1]) < 1e-4
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_same_values_and_gradients_as_autograd_through_the_pairs(dtype):
+    """The one-function form against autograd through every pair (padding in two elements, an
+    observed point on a vertex): values, the gradient to both point sets under unequal weights per
+    element, and no gradient kept where none is wanted."""
+    a, b = (x.to(dtype) + 3.0 for x in _clouds(n=4, v=30, p=20, seed=3))  # metres from the origin, as a walk's
+    b[1, 0] = a[1, 5]  # a pair at distance 0
+    lengths = torch.tensor([20, 7, 1, 20])
+    weights = torch.tensor([1.0, -2.0, 0.5, 3.0], dtype=dtype)
+    grads = []
+    for fn in (lambda x, y: SoftChamfer(y, lengths, 0.05)(x), lambda x, y: reference_soft_chamfer(x, y, lengths, 0.05)):
+        x, y = a.clone().requires_grad_(True), b.clone().requires_grad_(True)
+        value = fn(x, y)
+        (value * weights).sum().backward()
+        grads.append((value.detach(), x.grad, y.grad))
+    value_tol = {"rtol": 0.0, "atol": 1e-7}  # the reference's sqrt(d^2 + 1e-12): 1e-6 m at the coincident pair
+    tol = {"rtol": 1e-9, "atol": 1e-10} if dtype == torch.float64 else {"rtol": 1e-5, "atol": 1e-6}
+    assert torch.allclose(grads[0][0], grads[1][0], **value_tol)
+    for got, want in zip(grads[0][1:], grads[1][1:]):
+        assert torch.allclose(got, want, **tol)
+    assert float(grads[0][2][1, 7:].abs().max()) == 0.0  # padding: no gradient
+    with torch.no_grad():
+        assert torch.allclose(SoftChamfer(b, lengths, 0.05)(a), grads[1][0], **value_tol)
+
+
 def test_bad_arguments_are_refused():
     a, b = _clouds()
     with pytest.raises(ValueError, match="temperature must be > 0"):
@@ -77,3 +102,16 @@ def test_bad_arguments_are_refused():
         SoftChamfer(b, torch.tensor([25, 0, 3]), 0.1)
     with pytest.raises(ValueError, match=r"a must be \(3, V, 3\)"):
         SoftChamfer(b, torch.full((3,), 25), 0.1)(a[:2])
+
+
+def test_perf_part_prints_both_forms_side_by_side(tmp_path):
+    """``perf --only soft-chamfer``: both forms on the same points, their ratio and differences."""
+    from benchmark.tools import perf
+
+    report = perf.run_perf(out=tmp_path / "perf", parts=["soft-chamfer"])
+    rows = report["soft_chamfer"]
+    assert [(r["vertices"], r["points"]) for r in rows] == [(400, 100), (400, 256)]
+    for r in rows:
+        assert r["project_ms"] > 0 and r["reference_ms"] > 0 and r["ratio"] == r["project_ms"] / r["reference_ms"]
+        assert r["max_value_diff_m"] < 1e-6 and r["max_grad_diff_rel"] < 1e-4
+    assert "| 400 x 256 |" in (tmp_path / "perf" / "perf.md").read_text()

@@ -22,7 +22,8 @@ def add_command(sub) -> None:
     p.add_argument("--full", action="store_true", help="more frames per measurement (slower)")
     p.add_argument("--out", default="perf", help="folder for perf.md and perf.json")
     p.add_argument("--only", nargs="+", default=None,
-                   choices=["chamfer", "surface", "evaluation", "skinning", "adam", "cuda", "plateau", "lists"],
+                   choices=["chamfer", "surface", "evaluation", "skinning", "adam", "soft-chamfer", "cuda", "plateau",
+                            "lists"],
                    help="run only these parts (plateau, a quick table1 descent with and without the held sequences "
                         "kept, and lists, one quick table1 unit's nearest-neighbour searches with and without "
                         "neighbour lists: minutes each, run only when named)")

@@ -367,6 +367,10 @@ def format_report(r: dict) -> str:
         from benchmark.tools.perf_lists import format_lists
 
         lines += format_lists(r["lists"])
+    if r.get("soft_chamfer"):
+        from benchmark.tools.perf_soft import format_soft
+
+        lines += format_soft(r["soft_chamfer"])
     if r.get("cuda"):
         c = r["cuda"]
         lines += [f"## CUDA ({c['device']}): tiled {_fmt(c.get('tiled_ms'))} ms/frame, peak {_fmt(c.get('tiled_peak_mib'))} MiB; "
@@ -408,10 +412,11 @@ def _is_perf_md(path: Path) -> bool:
 
 def run_perf(device: str = "cpu", quick: bool = True, out: str | Path = "perf", parts=None) -> dict:
     """Run every comparison (or ``parts``, a subset of chamfer, surface, evaluation, skinning, adam,
-    cuda, plateau; plateau, a few minutes, only when named), print the table, write ``perf.md`` and ``perf.json`` to ``out``; return the figures.
+    soft-chamfer, cuda, plateau, lists; plateau and lists, a few minutes each, only when named), print
+    the table, write ``perf.md`` and ``perf.json`` to ``out``; return the figures.
     ``out`` is checked first (:func:`check_perf_out`)."""
     out = check_perf_out(out)
-    parts = set(parts or ("chamfer", "surface", "evaluation", "skinning", "adam", "cuda"))
+    parts = set(parts or ("chamfer", "surface", "evaluation", "skinning", "adam", "soft-chamfer", "cuda"))
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -437,6 +442,10 @@ def run_perf(device: str = "cpu", quick: bool = True, out: str | Path = "perf", 
             from benchmark.tools.perf_lists import lists_compare
 
             report["lists"] = lists_compare()
+        if "soft-chamfer" in parts:
+            from benchmark.tools.perf_soft import soft_chamfer_compare
+
+            report["soft_chamfer"] = soft_chamfer_compare()
         if "cuda" in parts and device.startswith("cuda"):
             report["cuda"] = cuda_compare()
     finally:
