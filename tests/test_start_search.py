@@ -243,24 +243,27 @@ def test_encoded_start_leaves_per_frame_priors_and_is_searched_once(anny_body, m
 
 
 def test_the_smooth_start_fit_searches_on_the_soft_chamfer_and_is_kept_apart(anny_body, monkeypatch, brief_searches):
-    """``objective.start_fit: smooth``: the prior-free start's brief fits run on the soft-min
-    Chamfer (and the exact rule on the Chamfer alone); the two starts are kept under different keys
-    (neither served for the other), each deterministic; an unknown value names the key."""
+    """``objective.start_fit: smooth``: the prior-free start's brief fits, its facing search's and
+    its limb search's, run on the soft-min Chamfer (and the exact rule on the Chamfer alone); the
+    two starts and the two facings are kept under different keys (neither served for the other),
+    each deterministic; an unknown value names the key."""
     from benchmark.metrics import soft_chamfer
-    from benchmark.protocols import start_search
+    from benchmark.protocols import brief_fit, facing, start_search
 
     _fresh_cache(monkeypatch)
+    monkeypatch.setattr(facing, "_FACING_CACHE", type(facing._FACING_CACHE)())
     built = []
     real = soft_chamfer.SoftChamfer
-    monkeypatch.setattr(start_search, "SoftChamfer", lambda *a: built.append(a[2]) or real(*a))
+    monkeypatch.setattr(brief_fit, "SoftChamfer", lambda *a: built.append(a[2]) or real(*a))
     batch = _walkers(anny_body, frames=3, points=60, count=1)
     g = torch.Generator().manual_seed(0)
     args = dict(device="cpu", lr=0.03, lambda_prior=0.01)
     exact, _ = prior_free_start(anny_body, batch, g, **args)
     assert built == []
     soft, log = prior_free_start(anny_body, batch, g, start_fit="smooth", **args)
-    assert built == [start_search.START_SOFTMIN_M] * (len(LIMB_START_STAGES) + 1)  # one per stage
+    assert built == [brief_fit.START_SOFTMIN_M] * (len(LIMB_START_STAGES) + 2)  # the facing search's, one per stage
     assert len(start_search._START_CACHE) == 2 and not torch.equal(exact.latents["pose"], soft.latents["pose"])
+    assert len(facing._FACING_CACHE) == 2
     _fresh_cache(monkeypatch)
     again, _ = prior_free_start(anny_body, batch, g, start_fit="smooth", **args)
     assert torch.equal(again.latents["pose"], soft.latents["pose"]) and torch.equal(again.trans, soft.trans)

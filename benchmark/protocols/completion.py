@@ -88,7 +88,7 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     every step (the same fit to float rounding; ``perf --only plateau`` times both).
 
     ``start_fit``: the start search's brief fits, their data term and optimiser
-    (``objective.start_fit``, :data:`~benchmark.protocols.start_search.START_FITS`).
+    (``objective.start_fit``, :data:`~benchmark.protocols.brief_fit.START_FITS`).
 
     ``optimiser``: ``"adam"`` (every table), or ``"lbfgs"`` (a table1 version 8 candidate, with
     ``plateau`` only): the batched L-BFGS of :mod:`benchmark.protocols.quasi_newton` on the same
@@ -117,9 +117,11 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         state, facing_log = prior_free_start(body, batch, generator, device, lr, lambda_prior, start_fit=start_fit)
         state.adapter = adapter
     elif facing == "search":
-        state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)
+        state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init,
+                                          start_fit=start_fit)
     elif facing == "observation":
-        state, facing_log = observed_facing(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)
+        state, facing_log = observed_facing(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init,
+                                            start_fit=start_fit)
     else:
         state = init_state(adapter, body, batch, generator, device, data_term=data_term, latent_init=latent_init)
 

@@ -16,16 +16,13 @@ from collections import OrderedDict
 import roma
 import torch
 
-from benchmark.metrics.soft_chamfer import SoftChamfer
-from benchmark.metrics.static_chamfer import StaticChamfer
+from benchmark.protocols.brief_fit import START_SOFTMIN_M, brief_fits, check_start_fit, search_chamfer
 from benchmark.protocols.latent_checks import check_latents, prior_values
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, as_latent, body_parameters,
                                               decode_grid, frame_chamfer, init_state, repeat_batch, rigid_parameters,
                                               set_rigid, subset_batch)
 from benchmark.protocols import start_cache
 from benchmark.protocols.multi_start import repeat_state
-from benchmark.protocols.quasi_newton import lbfgs_to_plateau
-from benchmark.protocols.step_rules import PlateauRule, optimise
 from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encoder
 
 # objective.start_search: "none"; "limbs" (table1 protocol v4): :func:`limb_start_search` for the
@@ -34,16 +31,8 @@ from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encode
 START_SEARCH_RULES = ("none", "limbs", "observation")
 ENCODED_START = "encoded prior-free start"  # encoded_start's log["start"]
 START_SEARCH_STEPS = (15, 25)  # coarse-fit steps per start hypothesis: rigid parameters only, then every variable
-# objective.start_fit: the search's brief fits and choices. "exact" (versions 4-7): on the Chamfer,
-# by Adam at the fit's rate. "smooth" (a version 8 candidate): on the soft-min Chamfer at
-# START_SOFTMIN_M (benchmark.metrics.soft_chamfer), smooth where the Chamfer's nearest neighbours
-# change, by the batched L-BFGS (benchmark.protocols.quasi_newton; as many iterations as Adam's
-# steps), whose line search does not magnify the small gradients of a flat objective as Adam's
-# normalised steps do: a search whose result does not follow the observation's last digits
-# (docs/table1.md, "A start search that does not move").
-START_FITS = ("exact", "smooth")
-START_SOFTMIN_M = 0.03
-FIXED_ITERATIONS = PlateauRule(tolerance=-1.0)  # a plateau test no fit passes: the L-BFGS runs to its cap
+# objective.start_fit: the data term and optimiser of the search's brief fits and choices, and of
+# the facing search's (benchmark.protocols.brief_fit: START_FITS).
 # The limb start hypotheses, in stages: first each arm in the T-pose, lowered to the side, or lowered
 # with the elbow bent forward; then each leg as it is, or with the hip flexed forward and the knee
 # bent. Local rotation vectors (radians) of the left limb's joints (SMPL order); the right limb's
@@ -97,13 +86,6 @@ def limb_hypotheses(adapter: PriorAdapter, state: FitState, stage: int) -> list[
     return out
 
 
-def check_start_fit(start_fit: str) -> str:
-    """``start_fit`` when it is one of START_FITS; otherwise a ValueError naming the key and the choices."""
-    if start_fit not in START_FITS:
-        raise ValueError(f"unknown objective.start_fit {start_fit!r}; choose one of {', '.join(START_FITS)}")
-    return start_fit
-
-
 def limb_start_search(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, lr: float,
                       lambda_prior: float, start_fit: str = "exact") -> tuple[FitState, dict]:
     """A per-frame prior's start, limb by limb (table1 protocol v4, ``objective.start_search: limbs``).
@@ -112,7 +94,7 @@ def limb_start_search(adapter: PriorAdapter, body, batch: FitBatch, state: FitSt
     hypothesis is fitted briefly on a subset (FACING_POINTS observed points per frame,
     FACING_VERTICES mesh vertices; START_SEARCH_STEPS), and each observed frame keeps the
     hypothesis with the lowest data term at that frame (``start_fit``: that data term and the
-    brief fits' optimiser, :data:`START_FITS`). A prior it does not apply to
+    brief fits' optimiser, :data:`~benchmark.protocols.brief_fit.START_FITS`). A prior it does not apply to
     (:func:`supports_start_search`) keeps ``state``. Returns the state and the choice counts per stage."""
     if not supports_start_search(adapter):
         return state, {"start_search": "none: not a per-frame prior with encode_motion"}
@@ -140,7 +122,7 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
     per observed frame along dimension 1), each fitted briefly from ``state``'s rigid parameters
     and shape. The data term is a mean over frames of terms of that frame's variables and the
     shared shape, so each frame takes its own best; the shape is that of the hypothesis with the
-    lowest mean. ``start_fit``: the data term and optimiser (:data:`START_FITS`; under ``smooth``
+    lowest mean. ``start_fit``: the data term and optimiser (:data:`~benchmark.protocols.brief_fit.START_FITS`; under ``smooth``
     the frames of a hypothesis share the L-BFGS's curvature pairs and line search, so a frame's fit
     is no longer alone; its choice still is)."""
     K = len(hyps)
@@ -156,27 +138,13 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
                    window_s=state.window_s, root=rep(state.root), trans=rep(state.trans), heading=rep(state.heading),
                    offset=rep(state.offset), bounded_shape=state.bounded_shape)
     subset = body.loss_vertex_indices(FACING_VERTICES)
-    if start_fit == "smooth":
-        chamfer = SoftChamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1), START_SOFTMIN_M)
-    else:
-        chamfer = StaticChamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1))
+    chamfer = search_chamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1), start_fit)
 
     def frame_terms():
         return frame_chamfer(hyp, body, small, subset, chamfer) * 1000.0
 
-    trace = []  # (B K,) each hypothesis's objective per step: the batched L-BFGS's bookkeeping
-
-    def loss_of(step):
-        rows = frame_terms().mean(1) + lambda_prior * prior_values(adapter, hyp.latents)
-        trace.append(rows.detach())
-        return rows.sum(), lambda: {}
-
-    for params, steps in zip((rigid_parameters(hyp), hyp.parameters()), START_SEARCH_STEPS):
-        if start_fit == "smooth":  # every iteration: never held (no plateau test before the cap)
-            lbfgs_to_plateau(adapter.name, params, steps, lr, loss_of, trace, FIXED_ITERATIONS)
-        else:
-            optimise(adapter.name, params, steps, lr, 1.0, loss_of)
-        trace.clear()
+    brief_fits(adapter.name, zip((rigid_parameters(hyp), hyp.parameters()), START_SEARCH_STEPS), lr,
+               lambda: frame_terms().mean(1) + lambda_prior * prior_values(adapter, hyp.latents), start_fit)
     with torch.no_grad():
         scores = frame_terms().view(B, K, n)
     best = scores.argmin(1)  # (B, n)
@@ -249,7 +217,7 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
     sizes = (repr(LIMB_START_STAGES), START_SEARCH_STEPS)
     if check_start_fit(start_fit) != "exact":  # (the exact fit's keys as before: their stored starts stay valid)
         sizes += (start_fit, START_SOFTMIN_M)
-    process_key, run_key = facing_keys(body, batch, device, lr, lambda_prior)
+    process_key, run_key = facing_keys(body, batch, device, lr, lambda_prior)  # (the start's own key names start_fit)
     key = ("start", facing, *process_key, *sizes)
     hit = _START_CACHE.get(key)
     if hit is None or hit[0] is not body:
@@ -262,7 +230,7 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
                 facing_log = {"facing": "aligned"}
             else:
                 state, facing_log = observed_facing(ref_prior, body, batch, generator, device, lr, lambda_prior,
-                                                    latent_init="mean")
+                                                    latent_init="mean", start_fit=start_fit)
             state, search_log = limb_start_search(ref_prior, body, batch, state, lr, lambda_prior, start_fit)
             stored = (state, {**facing_log, **search_log})
             start_cache.store_state(disk_key, *stored)

@@ -89,7 +89,7 @@ def with_start_fit(spec: dict, start_fit: str | None) -> str:
     """Set ``objective.start_fit`` (``--start-fit``: ``smooth`` is a candidate rule, docs/protocol.md)
     in the table spec ``spec``; returns the note the report prints ("" for None or the spec's own)."""
     from benchmark.protocols.completion_unit import start_fit_rule
-    from benchmark.protocols.start_search import START_FITS
+    from benchmark.protocols.brief_fit import START_FITS
 
     if start_fit is None or start_fit == start_fit_rule(spec):
         return ""

@@ -12,7 +12,7 @@ import torch
 
 from benchmark.metrics.soft_chamfer import SoftChamfer, reference_soft_chamfer
 
-TEMPERATURE_M = 0.03  # the start search's (benchmark.protocols.start_search.START_SOFTMIN_M)
+TEMPERATURE_M = 0.03  # the start search's (benchmark.protocols.brief_fit.START_SOFTMIN_M)
 
 
 def soft_chamfer_compare(elements: int = 72, vertices: int = 400, points=(100, 256), repeats: int = 3) -> list[dict]:
