@@ -6,17 +6,16 @@ subset of 100 and 256 points per frame; one frame of 8 sequences x 9 arm hypothe
 
 from __future__ import annotations
 
-import time
-
 import torch
 
 from benchmark.metrics.soft_chamfer import SoftChamfer, reference_soft_chamfer
+from benchmark.tools.perf_clock import timeit
 
 TEMPERATURE_M = 0.03  # the start search's (benchmark.protocols.brief_fit.START_SOFTMIN_M)
 
 
 def soft_chamfer_compare(elements: int = 72, vertices: int = 400, points=(100, 256), repeats: int = 3) -> list[dict]:
-    """ms per element of each form (forward + backward, the best of ``repeats``), their ratio and
+    """ms per element of each form (forward + backward, the best of ``repeats``, perf's clock), their ratio and
     the largest differences of value (m) and gradient (relative to the largest component)."""
     g = torch.Generator().manual_seed(0)
     rows = []
@@ -28,15 +27,16 @@ def soft_chamfer_compare(elements: int = 72, vertices: int = 400, points=(100, 2
         soft = SoftChamfer(b, lengths, TEMPERATURE_M)
         out = {}
         for name, fn in (("project", soft), ("reference", lambda a: reference_soft_chamfer(a, b, lengths, TEMPERATURE_M))):
-            best = float("inf")
-            for _ in range(repeats):
-                a = a0.clone().requires_grad_(True)
-                t0 = time.perf_counter()
+            a = a0.clone().requires_grad_(True)
+
+            def step():
+                a.grad = None
                 value = fn(a)
                 value.sum().backward()
-                best = min(best, time.perf_counter() - t0)
-            out[name] = (value.detach(), a.grad, best * 1000.0 / elements)
-        (v0, g0, ms0), (v1, g1, ms1) = out["project"], out["reference"]
+                out[name] = (value.detach(), a.grad)
+
+            out[name + "_ms"] = timeit(step, repeats) * 1000.0 / elements
+        (v0, g0), (v1, g1), ms0, ms1 = out["project"], out["reference"], out["project_ms"], out["reference_ms"]
         rows.append({"elements": elements, "vertices": vertices, "points": p, "project_ms": ms0, "reference_ms": ms1,
                      "ratio": ms0 / ms1, "max_value_diff_m": float((v0 - v1).abs().max()),
                      "max_grad_diff_rel": float((g0 - g1).abs().max() / g1.abs().max())})
