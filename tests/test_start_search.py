@@ -243,15 +243,14 @@ def test_encoded_start_leaves_per_frame_priors_and_is_searched_once(anny_body, m
 
 
 def test_the_smooth_start_fit_searches_on_the_soft_chamfer_and_is_kept_apart(anny_body, monkeypatch, brief_searches):
-    """``objective.start_fit: smooth``: the prior-free start's brief fits, its facing search's and
-    its limb search's, run on the soft-min Chamfer (and the exact rule on the Chamfer alone); the
-    two starts and the two facings are kept under different keys (neither served for the other),
-    each deterministic; an unknown value names the key."""
+    """``objective.start_fit: smooth``: the prior-free start's limb search's brief fits run on the
+    soft-min Chamfer (its facing search's stay on the Chamfer, as the exact rule's); the two starts
+    are kept under different keys (neither served for the other), each deterministic; an unknown
+    value names the key."""
     from benchmark.metrics import soft_chamfer
-    from benchmark.protocols import brief_fit, facing, start_search
+    from benchmark.protocols import brief_fit, start_search
 
     _fresh_cache(monkeypatch)
-    monkeypatch.setattr(facing, "_FACING_CACHE", type(facing._FACING_CACHE)())
     built = []
     real = soft_chamfer.SoftChamfer
     monkeypatch.setattr(brief_fit, "SoftChamfer", lambda *a: built.append(a[2]) or real(*a))
@@ -261,9 +260,8 @@ def test_the_smooth_start_fit_searches_on_the_soft_chamfer_and_is_kept_apart(ann
     exact, _ = prior_free_start(anny_body, batch, g, **args)
     assert built == []
     soft, log = prior_free_start(anny_body, batch, g, start_fit="smooth", **args)
-    assert built == [brief_fit.START_SOFTMIN_M] * (len(LIMB_START_STAGES) + 2)  # the facing search's, one per stage
+    assert built == [brief_fit.START_SOFTMIN_M] * (len(LIMB_START_STAGES) + 1)  # one per stage, none for the facing
     assert len(start_search._START_CACHE) == 2 and not torch.equal(exact.latents["pose"], soft.latents["pose"])
-    assert len(facing._FACING_CACHE) == 2
     _fresh_cache(monkeypatch)
     again, _ = prior_free_start(anny_body, batch, g, start_fit="smooth", **args)
     assert torch.equal(again.latents["pose"], soft.latents["pose"]) and torch.equal(again.trans, soft.trans)

@@ -1,16 +1,19 @@
-"""The brief fits of the start searches (the facing search, :mod:`benchmark.protocols.facing`, and
-the limb start search, :mod:`benchmark.protocols.start_search`) under ``objective.start_fit``.
+"""The brief fits of the limb start search (:mod:`benchmark.protocols.start_search`) under
+``objective.start_fit``.
 
-Both searches fit many start hypotheses for a few steps on a subset of the observation and keep
-the one with the lowest data term. ``start_fit`` says on which data term and by which optimiser:
-"exact" (table1 versions 2-7): the Chamfer, by Adam at the fit's rate; "smooth" (a version 8
-candidate): the soft-min Chamfer at START_SOFTMIN_M (:mod:`benchmark.metrics.soft_chamfer`),
+The search fits many start hypotheses for a few steps on a subset of the observation and keeps, per
+frame, the one with the lowest data term. ``start_fit`` says on which data term and by which
+optimiser: "exact" (table1 versions 4-7): the Chamfer, by Adam at the fit's rate; "smooth" (a
+version 8 candidate): the soft-min Chamfer at START_SOFTMIN_M (:mod:`benchmark.metrics.soft_chamfer`),
 smooth where the Chamfer's nearest neighbours change, by the batched L-BFGS
 (:mod:`benchmark.protocols.quasi_newton`, as many iterations as Adam's steps), whose line search
 does not magnify the small gradients of a flat objective as Adam's normalised steps do: a search
 whose result does not follow the observation's last digits (docs/table1.md, "A start search that
 does not move").
-"""
+
+The facing search (:mod:`benchmark.protocols.facing`), which precedes it, stays on the Chamfer by
+Adam under either rule: on the soft-min Chamfer its choice between a body's front and back blurred,
+and two of the quick profile's 8 sequences at 100 / 5 started backwards (docs/table1.md)."""
 
 from __future__ import annotations
 

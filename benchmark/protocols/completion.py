@@ -117,11 +117,9 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
         state, facing_log = prior_free_start(body, batch, generator, device, lr, lambda_prior, start_fit=start_fit)
         state.adapter = adapter
     elif facing == "search":
-        state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init,
-                                          start_fit=start_fit)
+        state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)
     elif facing == "observation":
-        state, facing_log = observed_facing(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init,
-                                            start_fit=start_fit)
+        state, facing_log = observed_facing(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)
     else:
         state = init_state(adapter, body, batch, generator, device, data_term=data_term, latent_init=latent_init)
 

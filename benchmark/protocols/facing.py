@@ -10,13 +10,14 @@ from collections import OrderedDict
 
 import torch
 
+from benchmark.metrics.static_chamfer import StaticChamfer
 from benchmark.data.observations import PointCloudSequence
 from benchmark.protocols import start_cache
-from benchmark.protocols.brief_fit import START_SOFTMIN_M, brief_fits, check_start_fit, search_chamfer
 from benchmark.protocols.latent_checks import prior_values
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, body_parameters, init_state,
                                              repeat_batch, rigid_parameters, set_yaw, subset_batch, subset_data_term)
 from benchmark.protocols.multi_start import select_copies
+from benchmark.protocols.step_rules import optimise
 from priors.base import FitBatch, PriorAdapter
 
 
@@ -30,15 +31,14 @@ FACING_STEPS = (15, 25)  # coarse-fit steps per hypothesis: rigid parameters onl
 
 
 def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device, lr: float,
-                  lambda_prior: float, latent_init: str = "sample", start_fit: str = "exact") -> tuple[FitState, dict]:
+                  lambda_prior: float, latent_init: str = "sample") -> tuple[FitState, dict]:
     """The initial state of a fit, with the facing direction found by a coarse multi-hypothesis fit.
 
     The same rule for every prior (protocol v2). Each sequence is tried at FACING_HYPOTHESES yaw
     angles about y (applied to the free root orientation, or to the free heading of a
     heading-normalised decoder). Every hypothesis is fitted briefly on a subset (FACING_POINTS
     observed points per frame, FACING_VERTICES mesh vertices): FACING_STEPS[0] steps of the rigid
-    parameters only, then FACING_STEPS[1] steps of every variable, with the table's objective
-    (``start_fit``: its data term and the optimiser, :mod:`benchmark.protocols.brief_fit`).
+    parameters only, then FACING_STEPS[1] steps of every variable, with the table's objective.
     Each sequence keeps the hypothesis with the lowest final data term, and the full fit continues
     from that hypothesis's fitted variables. A T-pose's Chamfer barely tells front from back; a
     posed body does (knees and elbows bend one way).
@@ -59,10 +59,16 @@ def facing_search(adapter: PriorAdapter, body, batch: FitBatch, generator: torch
         base_heading = None if hyp.heading is None else hyp.heading.detach().clone()
         set_yaw(hyp, base_root, base_heading, yaw)
     subset = body.loss_vertex_indices(FACING_VERTICES)
-    chamfer = search_chamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1), start_fit)
-    brief_fits(adapter.name, zip((rigid_parameters(hyp), hyp.parameters()), FACING_STEPS), lr,
-               lambda: subset_data_term(hyp, body, small, subset, chamfer) + lambda_prior * prior_values(adapter, hyp.latents),
-               start_fit)
+    chamfer = StaticChamfer(small.points.flatten(0, 1), small.lengths.flatten(0, 1))
+
+    def loss_of(step):
+        data = subset_data_term(hyp, body, small, subset, chamfer)
+        prior = prior_values(adapter, hyp.latents)
+        return (data + lambda_prior * prior).sum(), lambda: {}
+
+    rigid_steps, all_steps = FACING_STEPS
+    optimise(adapter.name, rigid_parameters(hyp), rigid_steps, lr, 1.0, loss_of)
+    optimise(adapter.name, hyp.parameters(), all_steps, lr, 1.0, loss_of)
     with torch.no_grad():
         scores = subset_data_term(hyp, body, small, subset, chamfer).view(B, K)
     best = scores.argmin(1)  # (B,)
@@ -90,12 +96,10 @@ _FACING_CACHE: OrderedDict = OrderedDict()
 FACING_CACHE_SIZE = 16
 
 
-def facing_keys(body, batch: FitBatch, device, lr: float, lambda_prior: float,
-                start_fit: str = "exact") -> tuple[tuple, tuple]:
+def facing_keys(body, batch: FitBatch, device, lr: float, lambda_prior: float) -> tuple[tuple, tuple]:
     """What :func:`observation_facing`'s result depends on: the observation's content (its
     :func:`~benchmark.data.degrade.fingerprint`), the body, the device, the objective and the search's
-    sizes and ``start_fit`` (named only when it is not ``exact``: the exact searches' keys as before,
-    so that their stored results stay valid). Two keys: this process's (the body by its id) and the disk's (the stored searches of a table
+    sizes. Two keys: this process's (the body by its id) and the disk's (the stored searches of a table
     run, :mod:`benchmark.protocols.start_cache`, whose namespace names the run's body)."""
     from benchmark.data.degrade import fingerprint
 
@@ -104,19 +108,16 @@ def facing_keys(body, batch: FitBatch, device, lr: float, lambda_prior: float,
     head = (fingerprint(obs), float(batch.window_s))
     tail = (str(device), float(lr), float(lambda_prior), FACING_HYPOTHESES, FACING_POINTS, FACING_VERTICES,
             tuple(FACING_STEPS))
-    if check_start_fit(start_fit) != "exact":
-        tail += (start_fit, START_SOFTMIN_M)
     return (*head, id(body), *tail), (*head, "run body", *tail)
 
 
 @torch.no_grad()
 def observation_facing(body, batch: FitBatch, generator: torch.Generator, device, lr: float,
-                       lambda_prior: float, start_fit: str = "exact") -> tuple[torch.Tensor, dict]:
+                       lambda_prior: float) -> tuple[torch.Tensor, dict]:
     """(B,) the facing of each sequence of ``batch``, found on the observation alone: the facing
     search (:func:`facing_search`) of the prior-free body (``no-prior``: free per-frame pose, root
     orientation and translation), then the circular mean of its fitted heading over the observed
-    frames (``start_fit``: the search's brief fits, :mod:`benchmark.protocols.brief_fit`). Returns
-    the yaw (radians about +y, 0 = facing +z) and the search's log.
+    frames. Returns the yaw (radians about +y, 0 = facing +z) and the search's log.
 
     A deterministic function of the observation (the prior-free body draws nothing from
     ``generator``): the result is kept per process (the last FACING_CACHE_SIZE observations) and
@@ -124,7 +125,7 @@ def observation_facing(body, batch: FitBatch, generator: torch.Generator, device
     on disk too (:mod:`benchmark.protocols.start_cache`)."""
     from priors.no_prior import NoPrior
 
-    key, run_key = facing_keys(body, batch, device, lr, lambda_prior, start_fit)
+    key, run_key = facing_keys(body, batch, device, lr, lambda_prior)
     hit = _FACING_CACHE.get(key)
     if hit is not None and hit[0] is body:
         _FACING_CACHE.move_to_end(key)
@@ -135,8 +136,7 @@ def observation_facing(body, batch: FitBatch, generator: torch.Generator, device
         yaw, log = stored["yaw"], stored["log"]
     else:
         with torch.enable_grad():
-            ref, log = facing_search(NoPrior(device=device), body, batch, generator, device, lr, lambda_prior,
-                                     start_fit=start_fit)
+            ref, log = facing_search(NoPrior(device=device), body, batch, generator, device, lr, lambda_prior)
         yaw = mean_heading(ref, batch)
         start_cache.write(disk_key, log, yaw=yaw.detach().cpu())
     _FACING_CACHE[key] = (body, yaw.clone(), copy.deepcopy(log))
@@ -146,10 +146,10 @@ def observation_facing(body, batch: FitBatch, generator: torch.Generator, device
 
 
 def observed_facing(adapter: PriorAdapter, body, batch: FitBatch, generator: torch.Generator, device, lr: float,
-                    lambda_prior: float, latent_init: str = "sample", start_fit: str = "exact") -> tuple[FitState, dict]:
+                    lambda_prior: float, latent_init: str = "sample") -> tuple[FitState, dict]:
     """The initial state of a fit under table1 protocol v2: the prior's own initial state
     (:func:`init_state`, no heading search), turned about +y so that its mean heading over the
-    observed frames is the observation's facing (:func:`observation_facing`; ``start_fit`` as there).
+    observed frames is the observation's facing (:func:`observation_facing`).
 
     The facing of a body in a point cloud is a property of the observation, so it is found without
     the prior, the same way for every prior: a prior whose decoder cannot yet represent the motion
@@ -157,7 +157,7 @@ def observed_facing(adapter: PriorAdapter, body, batch: FitBatch, generator: tor
     away during its own fit shows it in the diagnostics. The turn goes to the free root orientation
     (per-frame priors) or to the free heading (priors that decode their own root orientation).
     """
-    target, log = observation_facing(body, batch, generator, device, lr, lambda_prior, start_fit)
+    target, log = observation_facing(body, batch, generator, device, lr, lambda_prior)
     state = init_state(adapter, body, batch, generator, device, search_heading=False, latent_init=latent_init)
     if state.root is None and state.heading is None:
         return state, {"facing": "none: the prior has no free root orientation or heading"}

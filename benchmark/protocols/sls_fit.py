@@ -169,8 +169,7 @@ def fit_sls(adapter: PriorAdapter, body, obs: Observation, anchor_t: torch.Tenso
     facing = str(objective.get("facing", "heading8"))
     latent_init = str(objective.get("latent_init", "sample"))  # v3: "mean" (as table1 v3)
     if facing == "search":
-        state, _ = facing_search(adapter, body, batch, generator, device, lr, lam, latent_init=latent_init,
-                                 start_fit=check_start_fit(str(objective.get("start_fit", "exact"))))
+        state, _ = facing_search(adapter, body, batch, generator, device, lr, lam, latent_init=latent_init)
     elif facing in ("heading8", "aligned"):  # aligned: start facing +z, as the data rules align every sequence
         state = init_state(adapter, body, batch, generator, device, search_heading=facing == "heading8",
                            latent_init=latent_init)

@@ -31,8 +31,8 @@ from priors.base import FitBatch, MotionEncoder, PriorAdapter, has_motion_encode
 START_SEARCH_RULES = ("none", "limbs", "observation")
 ENCODED_START = "encoded prior-free start"  # encoded_start's log["start"]
 START_SEARCH_STEPS = (15, 25)  # coarse-fit steps per start hypothesis: rigid parameters only, then every variable
-# objective.start_fit: the data term and optimiser of the search's brief fits and choices, and of
-# the facing search's (benchmark.protocols.brief_fit: START_FITS).
+# objective.start_fit: the data term and optimiser of the search's brief fits and choices
+# (benchmark.protocols.brief_fit: START_FITS; the facing search's stay exact, see there).
 # The limb start hypotheses, in stages: first each arm in the T-pose, lowered to the side, or lowered
 # with the elbow bent forward; then each leg as it is, or with the hip flexed forward and the knee
 # bent. Local rotation vectors (radians) of the left limb's joints (SMPL order); the right limb's
@@ -217,7 +217,7 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
     sizes = (repr(LIMB_START_STAGES), START_SEARCH_STEPS)
     if check_start_fit(start_fit) != "exact":  # (the exact fit's keys as before: their stored starts stay valid)
         sizes += (start_fit, START_SOFTMIN_M)
-    process_key, run_key = facing_keys(body, batch, device, lr, lambda_prior)  # (the start's own key names start_fit)
+    process_key, run_key = facing_keys(body, batch, device, lr, lambda_prior)
     key = ("start", facing, *process_key, *sizes)
     hit = _START_CACHE.get(key)
     if hit is None or hit[0] is not body:
@@ -230,7 +230,7 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
                 facing_log = {"facing": "aligned"}
             else:
                 state, facing_log = observed_facing(ref_prior, body, batch, generator, device, lr, lambda_prior,
-                                                    latent_init="mean", start_fit=start_fit)
+                                                    latent_init="mean")  # (exact under either start_fit: brief_fit)
             state, search_log = limb_start_search(ref_prior, body, batch, state, lr, lambda_prior, start_fit)
             stored = (state, {**facing_log, **search_log})
             start_cache.store_state(disk_key, *stored)

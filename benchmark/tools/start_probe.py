@@ -60,7 +60,7 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
                                   data.out_t, "cpu")
         prior = NoPrior(device="cpu")
         state, _ = observed_facing(prior, body, batch, torch.Generator().manual_seed(0), "cpu", lr, lam,
-                                   latent_init="mean", start_fit=start_fit)
+                                   latent_init="mean")
 
         def joints(st):
             return decode_output(st, body, batch.output_timestamps)[0].joints
