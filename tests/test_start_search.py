@@ -269,6 +269,44 @@ def test_the_smooth_start_fit_searches_on_the_soft_chamfer_and_is_kept_apart(ann
         fit(make_adapter("no-prior"), anny_body, batch, steps=2, generator=g, start_fit="bogus", **args)
 
 
+def test_smooth_encoded_searches_only_the_encoders_start_smooth(anny_body, monkeypatch, brief_searches):
+    """``objective.start_fit: smooth-encoded``: the prior-free start an encoder encodes is the
+    smooth one (the sequential primitives' encoded start, the soft-min Chamfer built); no-prior's
+    own start and a per-frame prior's own search are the exact ones (served from the exact start's
+    key, no soft-min Chamfer built); a search's own functions refuse the spec-level value."""
+    from benchmark.metrics import soft_chamfer
+    from benchmark.protocols import brief_fit, start_search
+    from benchmark.protocols.brief_fit import check_search_fit, search_fit
+
+    assert [search_fit(f, e) for f in ("exact", "smooth", "smooth-encoded") for e in (False, True)] == [
+        "exact", "exact", "smooth", "smooth", "exact", "smooth"]
+    with pytest.raises(ValueError, match="'smooth-encoded' is not one search's rule"):
+        check_search_fit("smooth-encoded")
+    _fresh_cache(monkeypatch)
+    built = []
+    real = soft_chamfer.SoftChamfer
+    monkeypatch.setattr(brief_fit, "SoftChamfer", lambda *a: built.append(a[2]) or real(*a))
+    batch = _walkers(anny_body, frames=3, points=60, count=1)
+    g = torch.Generator().manual_seed(0)
+    args = dict(device="cpu", lr=0.03, lambda_prior=0.01)
+    with pytest.raises(ValueError, match="not one search's rule"):
+        prior_free_start(anny_body, batch, g, start_fit="smooth-encoded", **args)
+    for name in ("no-prior", "vposer-slerp"):
+        adapter = make_adapter(name)
+        own = init_state(adapter, anny_body, batch, g, "cpu", search_heading=False, latent_init="mean")
+        start_search.searched_start(adapter, anny_body, batch, own, "observation", g, start_fit="smooth-encoded", **args)
+    assert built == []
+    adapter = make_adapter("sequential-primitives")
+    own = init_state(adapter, anny_body, batch, g, "cpu", search_heading=False, latent_init="mean")
+    state, log = start_search.searched_start(adapter, anny_body, batch, own, "observation", g,
+                                             start_fit="smooth-encoded", **args)
+    assert log["start"] == "encoded prior-free start" and built == [brief_fit.START_SOFTMIN_M] * (len(LIMB_START_STAGES) + 1)
+    smooth, _ = prior_free_start(anny_body, batch, g, start_fit="smooth", **args)  # served: the one just encoded
+    assert len(built) == len(LIMB_START_STAGES) + 1
+    exact, _ = prior_free_start(anny_body, batch, g, **args)
+    assert not torch.equal(exact.latents["pose"], smooth.latents["pose"])
+
+
 def test_the_start_fit_key_is_read_checked_and_set_by_fit_check():
     from benchmark.protocols.completion_unit import start_fit_rule
     from benchmark.tools.fit_check import with_start_fit

@@ -39,10 +39,12 @@ def add_command(sub) -> None:
     p.add_argument("--optimiser", default=None, choices=("adam", "lbfgs"),
                    help="lbfgs: the batched L-BFGS on the same objective, each sequence held at its plateau: the "
                         "candidate rule objective.optimiser (docs/protocol.md), not table1's protocol as committed")
-    p.add_argument("--start-fit", default=None, choices=("exact", "smooth"),
+    p.add_argument("--start-fit", default=None, choices=("exact", "smooth", "smooth-encoded"),
                    help="smooth: the start search's brief fits and choices on the soft-min Chamfer (smooth where the "
-                        "nearest neighbours change), by L-BFGS: the candidate rule objective.start_fit "
-                        "(docs/protocol.md), not table1's protocol as committed; with --start-probe, the search it probes")
+                        "nearest neighbours change), by L-BFGS; smooth-encoded: so only for the prior-free start the "
+                        "encoders encode (no-prior's and the per-frame priors' own searches exact): the candidate "
+                        "rule objective.start_fit (docs/protocol.md), not table1's protocol as committed; with "
+                        "--start-probe, the search it probes (the encoders' start)")
 
     p.add_argument("--start-probe", action="store_true",
                    help="instead of a fit: the prior-free start's stages (facing, limb search) on the cell's "

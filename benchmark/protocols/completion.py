@@ -36,7 +36,8 @@ from benchmark.protocols.fit_state import (FitState, batch_rows, body_parameters
                                            repeat_batch, row_frames, rows_independent, state_rows)
 from benchmark.protocols.multi_start import MultiStart, select_copies, vary_copies
 from benchmark.protocols.quasi_newton import OPTIMISERS, lbfgs_to_plateau
-from benchmark.protocols.start_search import (ENCODED_START, START_SEARCH_RULES, check_start_fit, is_prior_free, prior_free_start,
+from benchmark.protocols.brief_fit import check_start_fit, search_fit
+from benchmark.protocols.start_search import (ENCODED_START, START_SEARCH_RULES, is_prior_free, prior_free_start,
                                               searched_start)
 from benchmark.protocols.step_rules import PlateauRule, optimise, optimise_to_plateau
 from priors.base import FitBatch, PriorAdapter
@@ -114,7 +115,8 @@ def fit(adapter: PriorAdapter, body, batch: FitBatch, steps: int, lr: float, lam
     check_start_fit(start_fit)
     own_start = start_search == "observation" and facing == "observation" and is_prior_free(adapter)
     if own_start:  # the prior-free start (facing, limb search) is this fit's start: computed once per observation
-        state, facing_log = prior_free_start(body, batch, generator, device, lr, lambda_prior, start_fit=start_fit)
+        state, facing_log = prior_free_start(body, batch, generator, device, lr, lambda_prior,
+                                             start_fit=search_fit(start_fit, encoded=False))
         state.adapter = adapter
     elif facing == "search":
         state, facing_log = facing_search(adapter, body, batch, generator, device, lr, lambda_prior, latent_init=latent_init)

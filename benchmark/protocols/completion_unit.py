@@ -404,8 +404,9 @@ def latent_init_rule(spec: dict) -> str:
 
 def start_fit_rule(spec: dict) -> str:
     """The start search's brief fits (``objective.start_fit``: ``exact``, Adam on the Chamfer, when
-    absent; ``smooth``, L-BFGS on the soft-min Chamfer: :data:`benchmark.protocols.brief_fit.START_FITS`)."""
-    from benchmark.protocols.start_search import check_start_fit
+    absent; ``smooth``, L-BFGS on the soft-min Chamfer; ``smooth-encoded``, smooth only for the start
+    the encoders encode: :data:`benchmark.protocols.brief_fit.START_FITS`)."""
+    from benchmark.protocols.brief_fit import check_start_fit
 
     return check_start_fit(str(spec["objective"].get("start_fit", "exact")))
 

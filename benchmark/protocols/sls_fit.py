@@ -14,7 +14,8 @@ from benchmark.protocols.latent_checks import prior_values
 from benchmark.protocols.facing import facing_search
 from benchmark.protocols.fit_state import (FitState, apply_free_rigid, body_parameters, init_state, parameter_groups,
                                            row_frames, rows_independent, state_rows)
-from benchmark.protocols.start_search import (START_SEARCH_RULES, check_start_fit, is_prior_free, prior_free_start,
+from benchmark.protocols.brief_fit import check_start_fit, search_fit
+from benchmark.protocols.start_search import (START_SEARCH_RULES, is_prior_free, prior_free_start,
                                               searched_start)
 from benchmark.protocols.step_rules import PlateauRule, optimise, optimise_to_plateau
 from benchmark.protocols.sls_data import Observation
@@ -133,7 +134,8 @@ def sls_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, obj
     if rule == "none":
         return state, {}
     if rule == "observation" and is_prior_free(adapter):  # its start is the prior-free start, cached per observation
-        state, log = prior_free_start(body, batch, generator, device, lr, lam, facing="aligned", start_fit=start_fit)
+        state, log = prior_free_start(body, batch, generator, device, lr, lam, facing="aligned",
+                                      start_fit=search_fit(start_fit, encoded=False))
         state.adapter = adapter
         return state, log
     return searched_start(adapter, body, batch, state, rule, generator, device, lr, lam, facing="aligned", start_fit=start_fit)

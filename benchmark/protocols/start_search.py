@@ -16,7 +16,7 @@ from collections import OrderedDict
 import roma
 import torch
 
-from benchmark.protocols.brief_fit import START_SOFTMIN_M, brief_fits, check_start_fit, search_chamfer
+from benchmark.protocols.brief_fit import START_SOFTMIN_M, brief_fits, check_search_fit, search_chamfer, search_fit
 from benchmark.protocols.latent_checks import check_latents, prior_values
 from benchmark.protocols.fit_state import (FACING_POINTS, FACING_VERTICES, FitState, as_latent, body_parameters,
                                               decode_grid, frame_chamfer, init_state, repeat_batch, rigid_parameters,
@@ -32,7 +32,8 @@ START_SEARCH_RULES = ("none", "limbs", "observation")
 ENCODED_START = "encoded prior-free start"  # encoded_start's log["start"]
 START_SEARCH_STEPS = (15, 25)  # coarse-fit steps per start hypothesis: rigid parameters only, then every variable
 # objective.start_fit: the data term and optimiser of the search's brief fits and choices
-# (benchmark.protocols.brief_fit: START_FITS; the facing search's stay exact, see there).
+# (benchmark.protocols.brief_fit: START_FITS, resolved per search by search_fit; the facing
+# search's stay exact, see there).
 # The limb start hypotheses, in stages: first each arm in the T-pose, lowered to the side, or lowered
 # with the elbow bent forward; then each leg as it is, or with the hip flexed forward and the knee
 # bent. Local rotation vectors (radians) of the left limb's joints (SMPL order); the right limb's
@@ -94,7 +95,7 @@ def limb_start_search(adapter: PriorAdapter, body, batch: FitBatch, state: FitSt
     hypothesis is fitted briefly on a subset (FACING_POINTS observed points per frame,
     FACING_VERTICES mesh vertices; START_SEARCH_STEPS), and each observed frame keeps the
     hypothesis with the lowest data term at that frame (``start_fit``: that data term and the
-    brief fits' optimiser, :data:`~benchmark.protocols.brief_fit.START_FITS`). A prior it does not apply to
+    brief fits' optimiser, one search's rule: :data:`~benchmark.protocols.brief_fit.SEARCH_FITS`). A prior it does not apply to
     (:func:`supports_start_search`) keeps ``state``. Returns the state and the choice counts per stage."""
     if not supports_start_search(adapter):
         return state, {"start_search": "none: not a per-frame prior with encode_motion"}
@@ -107,8 +108,9 @@ def limb_start_search(adapter: PriorAdapter, body, batch: FitBatch, state: FitSt
 def limb_search_stages(adapter: PriorAdapter, body, batch: FitBatch, state: FitState, lr: float, lambda_prior: float,
                        start_fit: str = "exact"):
     """The stages of :func:`limb_start_search` one by one: yields ``(state, choice counts)`` after
-    each (``fit-check --start-probe`` reads the start between them)."""
-    check_start_fit(start_fit)
+    each (``fit-check --start-probe`` reads the start between them). ``start_fit``: one search's
+    rule (:data:`~benchmark.protocols.brief_fit.SEARCH_FITS`)."""
+    check_search_fit(start_fit)
     stage = 0
     while (hyps := limb_hypotheses(adapter, state, stage)) is not None:
         state, stage_counts = _best_per_frame(adapter, body, batch, state, hyps, lr, lambda_prior, start_fit)
@@ -122,7 +124,7 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
     per observed frame along dimension 1), each fitted briefly from ``state``'s rigid parameters
     and shape. The data term is a mean over frames of terms of that frame's variables and the
     shared shape, so each frame takes its own best; the shape is that of the hypothesis with the
-    lowest mean. ``start_fit``: the data term and optimiser (:data:`~benchmark.protocols.brief_fit.START_FITS`; under ``smooth``
+    lowest mean. ``start_fit``: the data term and optimiser (:data:`~benchmark.protocols.brief_fit.SEARCH_FITS`; under ``smooth``
     the frames of a hypothesis share the L-BFGS's curvature pairs and line search, so a frame's fit
     is no longer alone; its choice still is)."""
     K = len(hyps)
@@ -215,7 +217,7 @@ def prior_free_start(body, batch: FitBatch, generator: torch.Generator, device, 
     if facing not in PRIOR_FREE_FACINGS:
         raise ValueError(f"prior_free_start: unknown facing {facing!r}; choose one of {', '.join(PRIOR_FREE_FACINGS)}")
     sizes = (repr(LIMB_START_STAGES), START_SEARCH_STEPS)
-    if check_start_fit(start_fit) != "exact":  # (the exact fit's keys as before: their stored starts stay valid)
+    if check_search_fit(start_fit) != "exact":  # (the exact fit's keys as before: their stored starts stay valid)
         sizes += (start_fit, START_SOFTMIN_M)
     process_key, run_key = facing_keys(body, batch, device, lr, lambda_prior)
     key = ("start", facing, *process_key, *sizes)
@@ -260,7 +262,7 @@ def searched_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState
     ``state``: :func:`limb_start_search` for the per-frame priors; under ``observation``, every other
     prior with a motion encoder starts from the prior-free start (``facing`` as in
     :func:`prior_free_start`), encoded (:func:`encoded_start`; ``copies`` as there)."""
-    state, log = limb_start_search(adapter, body, batch, state, lr, lambda_prior, start_fit)
+    state, log = limb_start_search(adapter, body, batch, state, lr, lambda_prior, search_fit(start_fit, encoded=False))
     if rule == "observation" and "start_choice_counts" not in log:
         state, log = encoded_start(adapter, body, batch, state, generator, device, lr, lambda_prior, facing=facing,
                                    copies=copies, start_fit=start_fit)
@@ -272,7 +274,8 @@ def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState,
                   start_fit: str = "exact") -> tuple[FitState, dict]:
     """A window or continuous prior's start under ``start_search: observation`` (table1 protocol v5):
     the prior-free body's start on the observation (:func:`prior_free_start`: facing, then limb by
-    limb; ``facing`` and ``start_fit`` as there), at the output timestamps (or, for a fixed-window prior whose latents
+    limb; ``facing`` as there; ``start_fit``, the spec's, resolved for it by
+    :func:`~benchmark.protocols.brief_fit.search_fit`), at the output timestamps (or, for a fixed-window prior whose latents
     follow its own frame grid and cover more, on that grid), encoded by the prior (``encode_motion``:
     the posterior mean);
     its body shape; the free rigid parameters set to its root orientation and translation at the
@@ -284,7 +287,8 @@ def encoded_start(adapter: PriorAdapter, body, batch: FitBatch, state: FitState,
     Returns the state and a log."""
     if not supports_encoded_start(adapter):
         return state, {"start_search": "none: a per-frame prior or a prior without a motion encoder"}
-    ref, ref_log = prior_free_start(body, batch, generator, device, lr, lambda_prior, facing=facing, start_fit=start_fit)
+    ref, ref_log = prior_free_start(body, batch, generator, device, lr, lambda_prior, facing=facing,
+                                    start_fit=search_fit(start_fit, encoded=True))
     if copies > 1:
         ref, state, batch = repeat_state(ref, copies), repeat_state(state, copies), repeat_batch(batch, copies)
 

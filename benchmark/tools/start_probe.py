@@ -33,6 +33,7 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
     from benchmark.data.table_data import load_motions
     from benchmark.protocols import completion_unit as cu
     from benchmark.protocols.completion import decode_output, observation_batch
+    from benchmark.protocols.brief_fit import search_fit
     from benchmark.protocols.facing import observed_facing
     from benchmark.protocols.start_search import limb_search_stages
     from benchmark.run.catalog import get_profile, load_table_spec
@@ -53,6 +54,7 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
                   capture_fps=float(data_rules["capture_fps"]))
     obj = spec["objective"]
     lr, lam = float(obj["lr"]), float(obj["lambda_prior"])
+    rule = search_fit(start_fit, encoded=True)  # the prior-free start, as the encoders encode it
     t0 = time.perf_counter()
 
     def stages(offset: float):
@@ -66,7 +68,7 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
             return decode_output(st, body, batch.output_timestamps)[0].joints
 
         out = [("facing", joints(state), None)]
-        for stage, (state, counts) in enumerate(limb_search_stages(prior, body, batch, state, lr, lam, start_fit)):
+        for stage, (state, counts) in enumerate(limb_search_stages(prior, body, batch, state, lr, lam, rule)):
             out.append((f"limb stage {stage + 1}", joints(state), counts))
         return out
 
