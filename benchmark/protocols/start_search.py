@@ -95,8 +95,9 @@ def limb_start_search(adapter: PriorAdapter, body, batch: FitBatch, state: FitSt
     hypothesis is fitted briefly on a subset (FACING_POINTS observed points per frame,
     FACING_VERTICES mesh vertices; START_SEARCH_STEPS), and each observed frame keeps the
     hypothesis with the lowest data term at that frame (``start_fit``: that data term and the
-    brief fits' optimiser, one search's rule: :data:`~benchmark.protocols.brief_fit.SEARCH_FITS`). A prior it does not apply to
-    (:func:`supports_start_search`) keeps ``state``. Returns the state and the choice counts per stage."""
+    brief fits' optimiser, one search's rule: :data:`~benchmark.protocols.brief_fit.SEARCH_FITS`).
+    A prior it does not apply to (:func:`supports_start_search`) keeps ``state``. Returns the state
+    and the choice counts per stage."""
     if not supports_start_search(adapter):
         return state, {"start_search": "none: not a per-frame prior with encode_motion"}
     counts = []
@@ -124,9 +125,10 @@ def _best_per_frame(adapter: PriorAdapter, body, batch: FitBatch, state: FitStat
     per observed frame along dimension 1), each fitted briefly from ``state``'s rigid parameters
     and shape. The data term is a mean over frames of terms of that frame's variables and the
     shared shape, so each frame takes its own best; the shape is that of the hypothesis with the
-    lowest mean. ``start_fit``: the data term and optimiser (:data:`~benchmark.protocols.brief_fit.SEARCH_FITS`; under ``smooth``
-    the frames of a hypothesis share the L-BFGS's curvature pairs and line search, so a frame's fit
-    is no longer alone; its choice still is)."""
+    lowest mean. ``start_fit``: the data term and optimiser
+    (:data:`~benchmark.protocols.brief_fit.SEARCH_FITS`; under ``smooth`` the frames of a hypothesis
+    share the L-BFGS's curvature pairs and line search, so a frame's fit is no longer alone; its
+    choice still is)."""
     K = len(hyps)
     B, n = batch.batch_size, batch.num_observed
     small = subset_batch(repeat_batch(batch, K), FACING_POINTS)
