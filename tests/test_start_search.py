@@ -242,18 +242,27 @@ def test_encoded_start_leaves_per_frame_priors_and_is_searched_once(anny_body, m
     assert torch.equal(b.latents["pose"], c.latents["pose"]) and len(calls) == 1
 
 
-def test_the_smooth_start_fit_searches_on_the_soft_chamfer_and_is_kept_apart(anny_body, monkeypatch, brief_searches):
-    """``objective.start_fit: smooth``: the prior-free start's limb search's brief fits run on the
-    soft-min Chamfer (its facing search's stay on the Chamfer, as the exact rule's); the two starts
-    are kept under different keys (neither served for the other), each deterministic; an unknown
-    value names the key."""
+def _soft_chamfers_built(monkeypatch) -> list:
+    """The start cache emptied; the temperature of every soft-min Chamfer the searches build from
+    here on, appended to the returned list."""
     from benchmark.metrics import soft_chamfer
-    from benchmark.protocols import brief_fit, start_search
+    from benchmark.protocols import brief_fit
 
     _fresh_cache(monkeypatch)
     built = []
     real = soft_chamfer.SoftChamfer
     monkeypatch.setattr(brief_fit, "SoftChamfer", lambda *a: built.append(a[2]) or real(*a))
+    return built
+
+
+def test_the_smooth_start_fit_searches_on_the_soft_chamfer_and_is_kept_apart(anny_body, monkeypatch, brief_searches):
+    """``objective.start_fit: smooth``: the prior-free start's limb search's brief fits run on the
+    soft-min Chamfer (its facing search's stay on the Chamfer, as the exact rule's); the two starts
+    are kept under different keys (neither served for the other), each deterministic; an unknown
+    value names the key."""
+    from benchmark.protocols import brief_fit, start_search
+
+    built = _soft_chamfers_built(monkeypatch)
     batch = _walkers(anny_body, frames=3, points=60, count=1)
     g = torch.Generator().manual_seed(0)
     args = dict(device="cpu", lr=0.03, lambda_prior=0.01)
@@ -274,7 +283,6 @@ def test_smooth_encoded_searches_only_the_encoders_start_smooth(anny_body, monke
     smooth one (the sequential primitives' encoded start, the soft-min Chamfer built); no-prior's
     own start and a per-frame prior's own search are the exact ones (served from the exact start's
     key, no soft-min Chamfer built); a search's own functions refuse the spec-level value."""
-    from benchmark.metrics import soft_chamfer
     from benchmark.protocols import brief_fit, start_search
     from benchmark.protocols.brief_fit import check_search_fit, search_fit
 
@@ -282,10 +290,7 @@ def test_smooth_encoded_searches_only_the_encoders_start_smooth(anny_body, monke
         "exact", "exact", "smooth", "smooth", "exact", "smooth"]
     with pytest.raises(ValueError, match="'smooth-encoded' is not one search's rule"):
         check_search_fit("smooth-encoded")
-    _fresh_cache(monkeypatch)
-    built = []
-    real = soft_chamfer.SoftChamfer
-    monkeypatch.setattr(brief_fit, "SoftChamfer", lambda *a: built.append(a[2]) or real(*a))
+    built = _soft_chamfers_built(monkeypatch)
     batch = _walkers(anny_body, frames=3, points=60, count=1)
     g = torch.Generator().manual_seed(0)
     args = dict(device="cpu", lr=0.03, lambda_prior=0.01)
