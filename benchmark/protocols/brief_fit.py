@@ -71,6 +71,7 @@ def brief_fits(prior_name: str, stages, lr: float, rows_of, start_fit: str) -> N
     steps (Adam, exact) or iterations (L-BFGS, smooth; every one, no plateau test; ``start_fit``:
     one search's rule) on the sum of
     ``rows_of()``, the (rows,) objective of every hypothesis."""
+    smooth = check_search_fit(start_fit) == "smooth"
     trace: list = []  # the batched L-BFGS's bookkeeping: each evaluation's rows
 
     def loss_of(step):
@@ -79,7 +80,7 @@ def brief_fits(prior_name: str, stages, lr: float, rows_of, start_fit: str) -> N
         return rows.sum(), lambda: {}
 
     for params, steps in stages:
-        if check_search_fit(start_fit) == "smooth":
+        if smooth:
             lbfgs_to_plateau(prior_name, params, steps, lr, loss_of, trace, FIXED_ITERATIONS)
         else:
             optimise(prior_name, params, steps, lr, 1.0, loss_of)

@@ -9,9 +9,8 @@ from __future__ import annotations
 import torch
 
 from benchmark.metrics.soft_chamfer import SoftChamfer, reference_soft_chamfer
+from benchmark.protocols.brief_fit import START_SOFTMIN_M as TEMPERATURE_M  # the start search's
 from benchmark.tools.perf_clock import timeit
-
-TEMPERATURE_M = 0.03  # the start search's (benchmark.protocols.brief_fit.START_SOFTMIN_M)
 
 
 def soft_chamfer_compare(elements: int = 72, vertices: int = 400, points=(100, 256), repeats: int = 3) -> list[dict]:
