@@ -6,6 +6,7 @@ is behind the ``slow`` marker; the default suite checks the command's argument e
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -195,3 +196,29 @@ def test_the_start_probe_reports_every_stage_and_a_deterministic_start(monkeypat
     assert len(lines) == 5 and "limb stage 2" in lines[-1] and "moved by 0 m" in lines[0]
     with pytest.raises(ValueError, match="not a table1 cell"):
         start_probe(50, 5)
+
+
+def test_the_longer_probe_reads_the_base_runs_stored_starts(tmp_path, monkeypatch):
+    """fit-check --robustness hands each cell's longer probe the starts its base run stored (the same
+    observation and search); the perturbed probe, another observation, searches its own."""
+    import benchmark.body
+    import benchmark.run.table_run
+    from benchmark.tools import fit_check
+
+    seen = {}
+
+    def fake_run_table(spec, profile, priors, body, device, seed, out, backend_options=None):
+        starts = Path(out) / "cache" / "starts"
+        seen[Path(out).name] = sorted(p.name for p in starts.glob("*.pt")) if starts.is_dir() else []
+        if Path(out).name.startswith("base-"):
+            starts.mkdir(parents=True, exist_ok=True)
+            (starts / (Path(out).name[-1] * 64 + ".pt")).write_bytes(b"start")
+        cell = {"mpjpe_mm": 40.0, "sequences": 1, "per_sequence": {"id": ["s0"], "mpjpe_mm": [40.0]},
+                "diagnostics": {"steps_max": 300, "sequences": 1, "not_converged": 0}}
+        return {"failures": [], "table": {"rows": [{"cells": [cell]}]}}
+
+    monkeypatch.setattr(benchmark.run.table_run, "run_table", fake_run_table)
+    monkeypatch.setattr(benchmark.body, "get_body", lambda *a, **k: object())
+    assert fit_check.run_robustness("no-prior", out=str(tmp_path / "fc")) == 0
+    assert seen["longer-100x5"] == ["5" * 64 + ".pt"] and seen["longer-10000x10"] == ["0" * 64 + ".pt"]
+    assert seen["perturbed-100x5"] == [] and seen["base-100x5"] == []

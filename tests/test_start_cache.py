@@ -189,3 +189,44 @@ def test_resume_never_forgets_the_stored_starts_and_nothing_else(tmp_path):
     (tmp_path / "mine.pt").write_bytes(b"mine")
     assert stored.exists() and forget_starts(tmp_path) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.pt", "notes.txt"]
+
+
+def test_the_namespace_ignores_what_only_the_descent_reads(tmp_path):
+    """A run that differs from another only in its step rule or its starts per sequence (fit-check's
+    longer probe; a raised cap) shares the other's stored prior-free starts: the search never reads
+    those keys. Any rule the search reads still separates them."""
+    from benchmark.protocols.start_cache import DESCENT_ONLY_KEYS
+    from benchmark.run.catalog import load_table_spec
+    from benchmark.run.table_run import TableExecutor
+
+    def namespace(spec):
+        execute = TableExecutor(None, spec, {}, {}, type("B", (), {"name": "anny"})(), None, "cpu")
+        execute.use_start_cache(tmp_path)
+        return execute.start_cache[1]
+
+    spec = load_table_spec("table1")
+    objective = spec["objective"]
+    same = namespace(spec)
+    assert "plateau" in DESCENT_ONLY_KEYS and "multi_start" in DESCENT_ONLY_KEYS
+    assert namespace({**spec, "objective": {**objective, "plateau": {**objective["plateau"], "min_steps": 900}}}) == same
+    assert namespace({**spec, "objective": {**objective, "multi_start": {"starts": 2, "choose": "plateau"}}}) == same
+    assert namespace({**spec, "objective": {**objective, "start_fit": "smooth"}}) != same
+    assert namespace({**spec, "objective": {**objective, "shape_lr_scale": 1}}) != same
+
+
+def test_share_starts_copies_stored_starts_and_keeps_what_is_there(tmp_path):
+    from benchmark.protocols.start_cache import share_starts
+
+    src, dest = tmp_path / "base" / "cache" / "starts", tmp_path / "longer" / "cache" / "starts"
+    src.mkdir(parents=True)
+    a, b = "a" * 64 + ".pt", "b" * 64 + ".pt"
+    for name in (a, b, "notes.pt", "c" * 64 + ".pt.tmp"):
+        (src / name).write_bytes(name.encode())
+    dest.mkdir(parents=True)
+    (dest / b).write_bytes(b"already here")
+    assert share_starts(tmp_path / "base", tmp_path / "longer") == 1
+    assert sorted(p.name for p in dest.iterdir()) == [a, b]
+    assert (dest / a).read_bytes() == a.encode() and (dest / b).read_bytes() == b"already here"
+    assert sorted(p.name for p in src.iterdir()) == sorted([a, b, "notes.pt", "c" * 64 + ".pt.tmp"])  # only read
+    assert share_starts(tmp_path / "base", tmp_path / "longer") == 0
+    assert share_starts(tmp_path / "nowhere", tmp_path / "longer") == 0

@@ -11,8 +11,9 @@ computed from a fresh search.
 
 A file's name is the sha256 of its key (what the search depends on: the observation's fingerprint,
 its facing rule, the objective and the search's sizes) and of the run's namespace: the table, its
-protocol version and rules, torch's version and the body (:func:`start_namespace`). Another
-protocol version, rule, torch or body therefore searches again, never serves an old start; like
+protocol version and rules (less those only the descent reads, :data:`DESCENT_ONLY_KEYS`), torch's
+version and the body (:func:`start_namespace`). Another protocol version, rule, torch or body
+therefore searches again, never serves an old start; like
 the stored work units, the stored starts outlive a change of code that moves no number (one that
 does bumps the protocol version, docs/protocol.md). A file that cannot be read, or
 whose stored key differs, is searched again with a warning. The Ray backend does not use it (its
@@ -26,6 +27,7 @@ import json
 import logging
 import os
 import re
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -43,9 +45,25 @@ TENSOR_FIELDS = ("shape_param", "obs_t", "root", "trans", "heading", "offset")
 _ACTIVE: list = []  # (folder, namespace) of the unit executing in this process
 
 
+# The objective's keys that only the descent after the start reads (its step rule, its stopping
+# test, several starts of the encoded rows): the prior-free search gets its rules as arguments (lr,
+# lambda_prior, facing, start_fit; in its key), never these, so a run that differs from another in
+# them alone (fit-check's longer probe, a raised step cap) finds the other's stored starts.
+DESCENT_ONLY_KEYS = ("plateau", "step_rule", "schedule", "convergence", "multi_start")
+
+
+def search_rules(rules: dict) -> dict:
+    """A table's rules (:func:`benchmark.core.work_units.table_rules`) without the objective's
+    :data:`DESCENT_ONLY_KEYS`: what a stored start's namespace names."""
+    objective = rules.get("objective")
+    if not isinstance(objective, dict):
+        return dict(rules)
+    return {**rules, "objective": {k: v for k, v in objective.items() if k not in DESCENT_ONLY_KEYS}}
+
+
 def start_namespace(identity: dict) -> str:
     """What every stored start of a run depends on besides its key: ``identity`` (JSON-able: the
-    table, its protocol version and rules, the body) and torch's version."""
+    table, its protocol version and rules (:func:`search_rules`), the body) and torch's version."""
     return hashlib.sha256(json.dumps({**identity, "torch": torch.__version__}, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -60,6 +78,23 @@ def forget_starts(folder) -> int:
     for p in ours:
         p.unlink()
     return len(ours)
+
+
+def share_starts(source_out, dest_out) -> int:
+    """Copy the starts stored under the run folder ``source_out`` (``cache/starts``) into
+    ``dest_out``'s, keeping any file already there; a run in ``dest_out`` reads those of the same
+    namespace and key (fit-check's longer probe: the base run's observation and search, another step
+    rule) and ignores the rest. Returns how many were copied."""
+    src, dest = Path(source_out).joinpath(*START_CACHE_FOLDER), Path(dest_out).joinpath(*START_CACHE_FOLDER)
+    if not src.is_dir():
+        return 0
+    copied = 0
+    for p in sorted(src.iterdir()):
+        if p.is_file() and re.fullmatch(r"[0-9a-f]{64}\.pt", p.name) and not (dest / p.name).exists():
+            dest.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(p, dest / p.name)
+            copied += 1
+    return copied
 
 
 @contextmanager

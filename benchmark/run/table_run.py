@@ -155,11 +155,11 @@ class TableExecutor:
         """Keep the prior-free searches (facing, limb start) in ``folder``, for the run's other workers
         and its resumptions (:mod:`benchmark.protocols.start_cache`)."""
         from benchmark.core.work_units import table_rules
-        from benchmark.protocols.start_cache import start_namespace
+        from benchmark.protocols.start_cache import search_rules, start_namespace
 
         body = body_identity(self.body) or {"body": self.body.name, "anny": _version("anny")}
         identity = {"table": self.spec.get("name"), "protocol_version": self.spec.get("protocol_version"),
-                    "rules": table_rules(self.spec), "body": body}
+                    "rules": search_rules(table_rules(self.spec)), "body": body}
         self.start_cache = (Path(folder), start_namespace(identity))
 
     def __call__(self, unit) -> dict:

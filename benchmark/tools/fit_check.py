@@ -241,13 +241,16 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
     Prints each cell's MPJPE and how far each probe moves it; exit 1 when a move exceeds
     MAX_MOVE_MM (a number a float perturbation or more steps moves by more measures the optimiser,
     not the prior). ``base_run``: a table1 run folder whose units serve as the base fits
-    (:func:`seed_base_units`). ``multi_start``: check the candidate rule of that many starts
+    (:func:`seed_base_units`) and whose stored prior-free starts the base runs read where they match;
+    the longer probe reads the base run's (the same observation and search, another step rule:
+    :data:`~benchmark.protocols.start_cache.DESCENT_ONLY_KEYS`). ``multi_start``: check the candidate rule of that many starts
     (:func:`with_multi_start`, about ``around``, chosen by ``choose``) instead of table1's own; ``rate_scaled``: the candidate plateau rule of
     :func:`with_rate_scaled`; ``optimiser``: :func:`with_optimiser`'s; ``start_fit``: :func:`with_start_fit`'s."""
     from pathlib import Path
 
     from benchmark.body import get_body
     from benchmark.core.outdir import OutDirLock, check_out_dir
+    from benchmark.protocols.start_cache import share_starts
     from benchmark.run.catalog import get_profile, load_table_spec
     from benchmark.run.registry import get_prior_class
     from benchmark.run.table_run import run_table
@@ -281,11 +284,15 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
             copied = seed_base_units(base_run, out_dir, prior)
             print(f"--base-run {base_run}: {len(copied)} unit file(s) of {prior} copied as base fits"
                   + ("" if copied else " (none there, or already in --out: the base fits are run as usual)"))
+            for points, fps in ROBUSTNESS_CELLS:  # its prior-free starts too, for the cells' base and longer runs
+                share_starts(base_run, Path(out_dir) / f"base-{points}x{fps}")
         body = get_body("anny", device=device)
         for key in ROBUSTNESS_CELLS:
             base[key] = run("base", spec, profile, key)
             steps = int((base[key].get("diagnostics") or {}).get("steps_max") or profile["steps"])
             for name, (s, p) in robustness_specs(spec, profile, steps).items():
+                if name == "longer":  # the base's observation and start search under another step rule
+                    share_starts(Path(out_dir) / f"base-{key[0]}x{key[1]}", Path(out_dir) / f"{name}-{key[0]}x{key[1]}")
                 probes[name][key] = run(name, s, p, key)
     print(f"\nfit-check --robustness: {prior}, table1 protocol v{spec['protocol_version']}{rule_note}, profile {profile['name']}, "
           f"{next(iter(base.values()))['sequences']} sequences; probes: observation moved by {PERTURBATION_M:g} m, "
