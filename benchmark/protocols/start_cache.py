@@ -67,14 +67,19 @@ def start_namespace(identity: dict) -> str:
     return hashlib.sha256(json.dumps({**identity, "torch": torch.__version__}, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def forget_starts(folder) -> int:
-    """Remove the starts stored in ``folder`` (the files this module writes there, nothing else), so
-    that a run asked to compute everything again (``run --resume never``) searches again too.
-    Returns how many were removed."""
+def stored_starts(folder) -> list[Path]:
+    """The starts stored in ``folder`` (the files this module writes there, nothing else), sorted;
+    [] where it is no folder."""
     path = Path(folder)
     if not path.is_dir():
-        return 0
-    ours = [p for p in path.iterdir() if p.is_file() and re.fullmatch(r"[0-9a-f]{64}\.pt", p.name)]
+        return []
+    return sorted(p for p in path.iterdir() if p.is_file() and re.fullmatch(r"[0-9a-f]{64}\.pt", p.name))
+
+
+def forget_starts(folder) -> int:
+    """Remove the starts stored in ``folder`` (:func:`stored_starts`), so that a run asked to compute
+    everything again (``run --resume never``) searches again too. Returns how many were removed."""
+    ours = stored_starts(folder)
     for p in ours:
         p.unlink()
     return len(ours)
@@ -85,12 +90,10 @@ def share_starts(source_out, dest_out) -> int:
     ``dest_out``'s, keeping any file already there; a run in ``dest_out`` reads those of the same
     namespace and key (fit-check's longer probe: the base run's observation and search, another step
     rule) and ignores the rest. Returns how many were copied."""
-    src, dest = Path(source_out).joinpath(*START_CACHE_FOLDER), Path(dest_out).joinpath(*START_CACHE_FOLDER)
-    if not src.is_dir():
-        return 0
+    dest = Path(dest_out).joinpath(*START_CACHE_FOLDER)
     copied = 0
-    for p in sorted(src.iterdir()):
-        if p.is_file() and re.fullmatch(r"[0-9a-f]{64}\.pt", p.name) and not (dest / p.name).exists():
+    for p in stored_starts(Path(source_out).joinpath(*START_CACHE_FOLDER)):
+        if not (dest / p.name).exists():
             dest.mkdir(parents=True, exist_ok=True)
             shutil.copy2(p, dest / p.name)
             copied += 1

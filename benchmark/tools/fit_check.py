@@ -16,6 +16,7 @@ committed numbers. The unit files go to ``--out`` (default ``runs/fit-check``) a
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 # The targets of issue 11 for no-prior at 10,000 points / 10 fps (the ground truth scores a vertex
 # Chamfer of about 7.0 mm against its own scan: the floor).
@@ -206,6 +207,12 @@ def mpjpe_moves(base: dict, probe: dict) -> tuple[float, float]:
     return cell_move, seq_move
 
 
+def probe_dir(out_dir, name: str, cell) -> Path:
+    """The run folder of ``fit-check --robustness``'s ``name`` run (base, perturbed, longer) of
+    ``cell`` (points, fps) under ``out_dir``."""
+    return Path(out_dir) / f"{name}-{cell[0]}x{cell[1]}"
+
+
 def seed_base_units(base_run, out_dir, prior: str, cells=ROBUSTNESS_CELLS) -> list:
     """Copy the units of ``prior`` at ``cells`` from the table1 run folder ``base_run``
     (``units/table1__PRIOR__points=P_fps=F__bNNN.json`` and ``.npz``) into
@@ -214,7 +221,6 @@ def seed_base_units(base_run, out_dir, prior: str, cells=ROBUSTNESS_CELLS) -> li
     its spec hash and checksum match (the same rules, profile, seed, weights and data); any other is
     moved aside to ``units/stale/`` there and fitted again. Returns the copied paths."""
     import shutil
-    from pathlib import Path
 
     units = Path(base_run).expanduser() / "units"
     if not units.is_dir():
@@ -222,7 +228,7 @@ def seed_base_units(base_run, out_dir, prior: str, cells=ROBUSTNESS_CELLS) -> li
                                 "'python -m benchmark run table1' run")
     copied = []
     for points, fps in cells:
-        dest = Path(out_dir) / f"base-{points}x{fps}" / "units"
+        dest = probe_dir(out_dir, "base", (points, fps)) / "units"
         for src in sorted(units.glob(f"table1__{prior}__points={points}_fps={fps}__b*")):
             if src.suffix not in (".json", ".npz") or (dest / src.name).exists():
                 continue
@@ -246,8 +252,6 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
     :data:`~benchmark.protocols.start_cache.DESCENT_ONLY_KEYS`). ``multi_start``: check the candidate rule of that many starts
     (:func:`with_multi_start`, about ``around``, chosen by ``choose``) instead of table1's own; ``rate_scaled``: the candidate plateau rule of
     :func:`with_rate_scaled`; ``optimiser``: :func:`with_optimiser`'s; ``start_fit``: :func:`with_start_fit`'s."""
-    from pathlib import Path
-
     from benchmark.body import get_body
     from benchmark.core.outdir import OutDirLock, check_out_dir
     from benchmark.protocols.start_cache import share_starts
@@ -269,7 +273,7 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
 
     def run(name, run_spec, run_profile, key):
         one = dict(run_spec, grid={"points": [key[0]], "fps": [key[1]]})
-        result = run_table(one, run_profile, [prior], body, device, seed, Path(out_dir) / f"{name}-{key[0]}x{key[1]}",
+        result = run_table(one, run_profile, [prior], body, device, seed, probe_dir(out_dir, name, key),
                            backend_options=backend)
         if result["failures"]:
             raise RuntimeError(f"fit-check: {len(result['failures'])} unit(s) of the {name} run failed; see the log above")
@@ -285,14 +289,14 @@ def run_robustness(prior: str, profile_name: str | None = None, device: str = "c
             print(f"--base-run {base_run}: {len(copied)} unit file(s) of {prior} copied as base fits"
                   + ("" if copied else " (none there, or already in --out: the base fits are run as usual)"))
             for points, fps in ROBUSTNESS_CELLS:  # its prior-free starts too, for the cells' base and longer runs
-                share_starts(base_run, Path(out_dir) / f"base-{points}x{fps}")
+                share_starts(base_run, probe_dir(out_dir, "base", (points, fps)))
         body = get_body("anny", device=device)
         for key in ROBUSTNESS_CELLS:
             base[key] = run("base", spec, profile, key)
             steps = int((base[key].get("diagnostics") or {}).get("steps_max") or profile["steps"])
             for name, (s, p) in robustness_specs(spec, profile, steps).items():
                 if name == "longer":  # the base's observation and start search under another step rule
-                    share_starts(Path(out_dir) / f"base-{key[0]}x{key[1]}", Path(out_dir) / f"{name}-{key[0]}x{key[1]}")
+                    share_starts(probe_dir(out_dir, "base", key), probe_dir(out_dir, name, key))
                 probes[name][key] = run(name, s, p, key)
     print(f"\nfit-check --robustness: {prior}, table1 protocol v{spec['protocol_version']}{rule_note}, profile {profile['name']}, "
           f"{next(iter(base.values()))['sequences']} sequences; probes: observation moved by {PERTURBATION_M:g} m, "
