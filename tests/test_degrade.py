@@ -114,6 +114,19 @@ def test_degrade_is_deterministic_from_the_seed():
         degrade(scans, 0, None)
 
 
+def test_a_seed_per_sequence_draws_each_subset_whatever_the_batch():
+    scans = labelled_scans(B=2, T=40)
+    both = degrade(scans, 100, 10.0, seed=[5, 6])
+    second = PointCloudSequence(points=scans.points[1:], lengths=scans.lengths[1:], timestamps=scans.timestamps[1:],
+                                frame_mask=scans.frame_mask[1:])
+    alone = degrade(second, 100, 10.0, seed=[6])
+    assert torch.equal(both.points[1:], alone.points) and torch.equal(both.lengths[1:], alone.lengths)
+    # one seed for the batch: sequence 1 draws after sequence 0, another subset than on its own
+    assert not torch.equal(degrade(scans, 100, 10.0, seed=6).points[1:], alone.points)
+    with pytest.raises(ValueError, match=r"degrade: `seed` must be an int or a list of 2 ints"):
+        degrade(scans, 100, 10.0, seed=[5])
+
+
 # --------------------------------------------------------------------------- fingerprints
 def tiny_scans() -> PointCloudSequence:
     points = torch.tensor([[[[0.0, 0.5, 1.0], [0.25, -1.0, 2.0], [0.0, 0.0, 0.0]],

@@ -273,6 +273,36 @@ def test_make_scans_is_deterministic_and_chunk_independent():
     assert not torch.allclose(a.points, c.points)
 
 
+def test_a_seed_per_sequence_samples_each_sequence_whatever_the_batch():
+    body = BoxBody()
+    motions = [make_motion(0.3, seed=1), make_motion(0.3, seed=2)]
+    both, _ = make_scans(body, motions, num_points=64, seed=[11, 12], noise_std=0.003)
+    second, _ = make_scans(body, motions[1:], num_points=64, seed=[12], noise_std=0.003)
+    assert torch.equal(both.points[1:], second.points)
+    shared, _ = make_scans(body, motions, num_points=64, seed=11, noise_std=0.003)
+    assert not torch.equal(shared.points[1:], second.points)  # one seed: sequence 1 draws after sequence 0
+    with pytest.raises(ValueError, match=r"make_scans: `seed` must be an int or a list of 2 ints"):
+        make_scans(body, motions, num_points=8, seed=[11, True])
+
+
+def test_table1_data_seeds_by_sequence_give_a_sequence_its_data_in_any_batch():
+    from benchmark.protocols.completion_unit import CompletionData
+    from benchmark.protocols.unit_data import cell_degrade_seed
+
+    spec = {"data": {"capture_fps": 50, "points_per_frame": 32, "scan_noise_std": 0.0, "window_s": 0.2,
+                     "seeds": "sequence"}, "output_fps": 30}
+    motions = {"a": make_motion(0.3, seed=1), "b": make_motion(0.3, seed=2)}
+    source = CompletionData(spec, BoxBody(), motions, seed=7)
+    both, alone = source.unit_data(["a", "b"]), source.unit_data(["b"])
+    assert torch.equal(both.scans.points[1:], alone.scans.points)
+    assert torch.equal(both.gt_points[1:], alone.gt_points)
+    assert cell_degrade_seed(7, 100, 5, ["a", "b"], rule="sequence")[1] == cell_degrade_seed(7, 100, 5, ["b"], rule="sequence")[0]
+    batch = CompletionData({**spec, "data": {**spec["data"], "seeds": "batch"}}, BoxBody(), motions, seed=7)
+    assert not torch.equal(batch.unit_data(["a", "b"]).scans.points[1:], batch.unit_data(["b"]).scans.points)
+    with pytest.raises(ValueError, match=r"field 'data.seeds' must be one of batch, sequence; got 'sequences'"):
+        CompletionData({**spec, "data": {**spec["data"], "seeds": "sequences"}}, BoxBody(), motions, seed=7)
+
+
 def test_shapes_follow_the_motions_and_mismatches_are_named():
     body = BoxBody()
     _, gt = make_scans(body, [make_motion(0.2, shape=torch.tensor([2.0]))], num_points=8)

@@ -13,7 +13,7 @@ import logging
 
 import torch
 
-from benchmark.data.observations import PointCloudSequence
+from benchmark.data.observations import PointCloudSequence, seed_generators
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ def degrade(
     scans: PointCloudSequence,
     points_per_frame: int | None,
     fps: float | None,
-    seed: int = 0,
+    seed: int | list[int] = 0,
     capture_fps: float | None = None,
 ) -> PointCloudSequence:
     """Thin scans in time and space.
@@ -84,7 +84,9 @@ def degrade(
     Spatial (``points_per_frame``; None keeps every point): a fresh uniform random subset of
     ``points_per_frame`` distinct points in each kept frame, drawn from
     ``torch.Generator().manual_seed(seed)`` (one float64 key per padded point slot, shape
-    (B, T', N), the smallest keys win); the kept points stay in their original order. A frame with
+    (B, T', N), the smallest keys win); the kept points stay in their original order. ``seed`` a
+    list of B ints: sequence b's keys ((T', N)) come from its own generator, so its subset does not
+    depend on the rest of the batch. A frame with
     fewer points keeps all of them: its ``lengths`` entry stays below ``points_per_frame``, and
     the number of such frames is logged as a warning.
     Returns a new PointCloudSequence with points (B, T', min(N, points_per_frame), 3).
@@ -111,8 +113,11 @@ def degrade(
         )
     slot = torch.arange(N, device=points.device)
     real = slot < lengths[..., None]  # (B, T, N)
-    generator = torch.Generator().manual_seed(seed)
-    keys = torch.rand(B, T, N, dtype=torch.float64, generator=generator).to(points.device)
+    if isinstance(seed, (list, tuple)):
+        keys = torch.stack([torch.rand(T, N, dtype=torch.float64, generator=g)
+                            for g in seed_generators(seed, B, "degrade")]).to(points.device)
+    else:
+        keys = torch.rand(B, T, N, dtype=torch.float64, generator=torch.Generator().manual_seed(seed)).to(points.device)
     keys = keys.masked_fill(~real, 2.0)  # padding sorts after every real point
     idx = keys.topk(keep, dim=-1, largest=False).indices.sort(dim=-1).values  # (B, T, keep)
     subset = points.gather(2, idx[..., None].expand(B, T, keep, 3))

@@ -314,13 +314,25 @@ def _pose_motions(body, motions, timestamps, shapes, frame_mask, chunk_frames):
 
 
 # --------------------------------------------------------------------------- observations
+def seed_generators(seed: int | Sequence[int], batch: int, caller: str) -> list[torch.Generator]:
+    """One CPU generator per sequence of a batch of ``batch``: ``seed`` an int gives one generator
+    shared by them all (each draws after the one before it), a list of ``batch`` ints one
+    generator each (a sequence's draws then do not depend on the rest of the batch)."""
+    if isinstance(seed, (list, tuple)):
+        if len(seed) != batch or not all(isinstance(s, int) and not isinstance(s, bool) for s in seed):
+            raise ValueError(f"{caller}: `seed` must be an int or a list of {batch} ints (one per sequence); got {seed!r}")
+        return [torch.Generator().manual_seed(int(s)) for s in seed]
+    shared = torch.Generator().manual_seed(int(seed))
+    return [shared] * batch
+
+
 def make_scans(
     body,
     motions: Sequence,
     fps: float = 50.0,
     num_points: int = 10000,
     noise_std: float = 0.0,
-    seed: int = 0,
+    seed: int | Sequence[int] = 0,
     duration: float | None = None,
     shapes: torch.Tensor | None = None,
     chunk_frames: int = DEFAULT_CHUNK_FRAMES,
@@ -332,16 +344,17 @@ def make_scans(
     over the posed surface's area (:func:`sample_surface`), independently per frame, with optional
     Gaussian noise of std ``noise_std`` metres. Padded frames get no points (length 0).
     Sampling draws from one ``torch.Generator`` seeded with ``seed`` (CPU), sequence by sequence,
-    so the result does not depend on ``chunk_frames``.
+    so the result does not depend on ``chunk_frames``; ``seed`` a list of one int per motion: each
+    sequence draws from its own generator, so its points do not depend on the rest of the batch.
     Returns (PointCloudSequence with points (B, T, N, 3), GroundTruth at the same timestamps).
     """
     motions = tuple(motions)
     timestamps, frame_mask = capture_timestamps(motions, fps, duration)
     gt = ground_truth_at(body, motions, timestamps, shapes=shapes, frame_mask=frame_mask, chunk_frames=chunk_frames)
-    generator = torch.Generator().manual_seed(seed)
+    generators = seed_generators(seed, len(motions), "make_scans")
     with torch.no_grad():
         points = torch.cat(
-            [sample_surface(gt.vertices[b : b + 1], body.faces, num_points, generator, noise_std)
+            [sample_surface(gt.vertices[b : b + 1], body.faces, num_points, generators[b], noise_std)
              for b in range(len(motions))]
         )
     mask = gt.frame_mask

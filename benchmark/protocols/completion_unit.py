@@ -18,12 +18,11 @@ import torch
 
 from benchmark.data.degrade import degrade, fingerprint
 from benchmark.core.fit_diagnostics import sequence_diagnostics
-from benchmark.data.observations import make_scans
+from benchmark.data.observations import make_scans, seed_generators
 from benchmark.protocols.completion import decode_output, fit, observation_batch
 from benchmark.protocols.step_rules import plateau_rule
-from benchmark.protocols.unit_data import UnitData
+from benchmark.protocols.unit_data import UnitData, cell_degrade_seed, seed_rule, unit_seeds
 from benchmark.core.surface_sampling import sample_surface
-from benchmark.core.work_units import stable_seed
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +34,7 @@ class CompletionData:
 
     def __init__(self, table_spec: dict, body, motions_by_id: dict, seed: int):
         self.spec = table_spec
+        self.seeds = seed_rule(table_spec)
         self.body = body.on_cpu()  # the data is made on the CPU whatever the run's device (BodyModel.on_cpu)
         self.motions = motions_by_id
         self.seed = seed
@@ -50,7 +50,7 @@ class CompletionData:
         motions = [self.motions[sid] for sid in sequence_ids]
         if start:
             motions = [m.window(float(m.timestamps[0]) + start, m.duration - start) for m in motions]
-        capture_seed = stable_seed("capture", self.seed, *sequence_ids)
+        capture_seed = unit_seeds("capture", self.seed, sequence_ids, rule=self.seeds)
         scans, gt = make_scans(self.body, motions, fps=float(d["capture_fps"]), num_points=int(d["points_per_frame"]),
                                noise_std=float(d.get("scan_noise_std", 0.0)), seed=capture_seed, duration=window)
         out_fps = float(self.spec["output_fps"])
@@ -59,9 +59,9 @@ class CompletionData:
         rel = torch.arange(n_out, dtype=torch.float64, device=t0.device) / out_fps
         out_abs = t0 + rel[None]
         gt_out = gt.at(out_abs)
-        g = torch.Generator().manual_seed(stable_seed("gt-scan", self.seed, *sequence_ids))
+        gs = seed_generators(unit_seeds("gt-scan", self.seed, sequence_ids, rule=self.seeds), len(motions), "gt-scan")
         with torch.no_grad():
-            gt_points = torch.cat([sample_surface(gt_out.vertices[b:b + 1], self.body.faces, int(d["points_per_frame"]), g)
+            gt_points = torch.cat([sample_surface(gt_out.vertices[b:b + 1], self.body.faces, int(d["points_per_frame"]), gs[b])
                                    for b in range(len(motions))])
         data = UnitData(scans=scans, out_t=rel[None].expand(len(motions), -1).clone(), gt_points=gt_points,
                         gt_joints=gt_out.joints)
@@ -315,18 +315,13 @@ def loss_vertex_count(profile: dict) -> int | None:
     return None if value in (None, "all") else int(value)
 
 
-def cell_degrade_seed(seed: int, points, fps, sequence_ids) -> int:
-    """The seed of a cell's degradation of these sequences (the table seed, the cell as the grid
-    writes it, the sequences; never the prior: every prior of a cell sees one observation)."""
-    return stable_seed("degrade", seed, points, fps, *sequence_ids)
-
-
 def run_completion_unit(unit, table_spec: dict, profile: dict, adapter, body, data_source: CompletionData, device) -> dict:
     cell = unit.cell
     data = data_source.unit_data(unit.sequence_ids)
     # The degradation depends on the table seed, the cell and the sequences, never on the prior:
     # every prior sees the same observation in a cell (same fingerprint).
-    degrade_seed = cell_degrade_seed(data_source.seed, cell["points"], cell["fps"], unit.sequence_ids)
+    degrade_seed = cell_degrade_seed(data_source.seed, cell["points"], cell["fps"], unit.sequence_ids,
+                                     rule=seed_rule(table_spec))
     obs_offsets = None
     if hasattr(data_source, "observe"):  # captured scans (scan_completion.py): nearest capture frames
         from benchmark.protocols.scan_completion import CellNotServed

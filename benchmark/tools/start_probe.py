@@ -50,7 +50,7 @@ def start_probe(points: int = 100, fps: float = 5, sequences: int | None = None,
     if sequences is not None:
         ids = ids[: int(sequences)]
     data = cu.make_source(spec, body, motions, seed).unit_data(ids)
-    obs = degrade(data.scans, int(points), float(fps), seed=cu.cell_degrade_seed(seed, points, fps, ids),
+    obs = degrade(data.scans, int(points), float(fps), seed=cu.cell_degrade_seed(seed, points, fps, ids, rule=cu.seed_rule(spec)),
                   capture_fps=float(data_rules["capture_fps"]))
     obj = spec["objective"]
     lr, lam = float(obj["lr"]), float(obj["lambda_prior"])
