@@ -89,6 +89,20 @@ def test_a_failing_unit_is_logged_skipped_and_rerun_later(tmp_path, caplog):
     assert results == list(report.results.values()) and failures == report.failed
 
 
+def test_without_a_bar_each_finished_unit_prints_one_line(tmp_path, capsys):
+    """A run whose output is not a terminal (a log file, a batch job) shows no bar: it says as each
+    unit is stored instead, so a run of hours shows it is moving; a failed unit has its error line."""
+    units = plan()[:3]
+    runner.run_units(units, FakeExecutor(fail={units[1].unit_id}), tmp_path, progress=False)
+    done = [line for line in capsys.readouterr().out.splitlines() if line.startswith("unit ")]
+    assert [line.split(" stored (")[0] for line in done] == [f"unit 1 of 3 done: {units[0].unit_id}",
+                                                             f"unit 3 of 3 done: {units[2].unit_id}"]
+    assert all(line.endswith(" into the run)") for line in done)
+    runner.run_units(units, FakeExecutor(), tmp_path / "quiet", progress=False, announce=False)
+    assert "done:" not in capsys.readouterr().out
+    assert (runner.clock(42.4), runner.clock(185), runner.clock(3725)) == ("42 s", "3 min 05 s", "1 h 02 min")
+
+
 def test_an_invalid_result_is_a_failure_and_is_not_stored(tmp_path):
     units = plan(priors=["p"])
 

@@ -110,6 +110,14 @@ class RunReport:
         return text
 
 
+def clock(seconds: float) -> str:
+    """``1 h 02 min``, ``3 min 05 s`` or ``42 s``: a run's elapsed wall time as its lines print it."""
+    s = int(round(seconds))
+    if s >= 3600:
+        return f"{s // 3600} h {s % 3600 // 60:02d} min"
+    return f"{s // 60} min {s % 60:02d} s" if s >= 60 else f"{s} s"
+
+
 def progress_enabled(progress: bool | None) -> bool:
     """Progress bars: ``None`` means on only when stdout is a terminal."""
     if progress is None:
@@ -345,6 +353,7 @@ def run_units(
 
     bar = tqdm(total=len(units), initial=len(report.reused), unit="unit", desc="work units",
                disable=not progress_enabled(progress), dynamic_ncols=True)
+    lines = announce and bar.disable  # no bar (a log file, a batch job): one line per finished unit instead
 
     def on_done(unit: WorkUnit, result: dict | None, error: BaseException | None) -> None:
         try:
@@ -370,6 +379,9 @@ def run_units(
             else:
                 done[unit.unit_id] = record
                 report.ran.append(unit.unit_id)
+                if lines:
+                    print(f"unit {len(report.ran) + len(report.failed)} of {len(todo)} done: {unit.unit_id} stored "
+                          f"({clock(time.perf_counter() - t0)} into the run)", flush=True)
         finally:
             bar.update(1)
 
