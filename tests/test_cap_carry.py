@@ -20,6 +20,14 @@ from benchmark.run.writers import format_markdown
 from fake_units import FakeExecutor, meta, plan, profile, table_spec
 from test_plateau_rule import _problem
 
+def single_start(**objective_changes) -> dict:
+    """table1's spec with one start per sequence (version 8 races two copies of the encoded rows,
+    whose choice depends on every copy's end: a unit under it is never carried)."""
+    spec = table_spec(**objective_changes)
+    spec["objective"].pop("multi_start", None)
+    return spec
+
+
 V7 = PlateauRule(window=20, tolerance=0.005, smoothing=5, check_every=5, anneal_steps=10, reductions=2, factor=0.3)
 
 
@@ -68,7 +76,7 @@ def _carry(spec):
 
 
 def test_converged_units_are_carried_to_a_raised_cap_and_the_others_rerun(tmp_path):
-    spec = table_spec()
+    spec = single_start()
     old = plan(spec, profile(batch_sequences=2, steps=400))
     open_id = old[0].unit_id
     run_units(old, _Converging(open_units={open_id}), tmp_path, announce=False)
@@ -99,7 +107,7 @@ def test_converged_units_are_carried_to_a_raised_cap_and_the_others_rerun(tmp_pa
 def test_a_carry_that_fails_midway_reruns_the_unit_and_keeps_the_original(tmp_path, monkeypatch):
     import benchmark.run.runner as runner
 
-    spec = table_spec()
+    spec = single_start()
     old = plan(spec, profile(batch_sequences=2, steps=400))[:1]
     run_units(old, _Converging(), tmp_path, announce=False)
     before = json.loads(unit_path(tmp_path, old[0].unit_id).read_text())
@@ -120,7 +128,7 @@ def test_a_carry_that_fails_midway_reruns_the_unit_and_keeps_the_original(tmp_pa
 
 @pytest.mark.parametrize("case", ["cap fell", "no carry", "several starts", "other sizes"])
 def test_units_are_rerun_where_the_cap_did_not_rise_or_the_rules_forbid_it(tmp_path, case):
-    spec = table_spec()
+    spec = single_start()
     run_units(plan(spec, profile(batch_sequences=2, steps=400)), _Converging(), tmp_path, announce=False)
     new_spec = table_spec(multi_start={"starts": 2}) if case == "several starts" else spec
     sizes = {"cap fell": {"steps": 200}, "other sizes": {"steps": 800, "loss_vertices": 100}}.get(case, {"steps": 800})
@@ -137,16 +145,17 @@ def test_units_are_rerun_where_the_cap_did_not_rise_or_the_rules_forbid_it(tmp_p
 
 def test_the_protocols_declare_which_rules_are_cap_independent():
     completion = make_protocol("completion")
-    assert completion.carry_problem(table_spec()) is None
-    assert make_protocol("sls").carry_problem(copy.deepcopy(table_spec())) is None
-    assert "cosine" in completion.carry_problem(table_spec(step_rule="cosine"))
-    assert "optimiser" in completion.carry_problem(table_spec(optimiser="lbfgs"))
-    assert "minimum" in completion.carry_problem(table_spec(plateau={"min_steps": 100}))
+    assert "several starts" in completion.carry_problem(table_spec())  # table1 version 8: two copies raced
+    assert completion.carry_problem(single_start()) is None
+    assert make_protocol("sls").carry_problem(copy.deepcopy(single_start())) is None
+    assert "cosine" in completion.carry_problem(single_start(step_rule="cosine"))
+    assert "optimiser" in completion.carry_problem(single_start(optimiser="lbfgs"))
+    assert "minimum" in completion.carry_problem(single_start(plateau={"min_steps": 100}))
     assert "does not declare" in make_protocol("denoise").carry_problem({})
 
 
 def _table(units, results, steps, priors):
-    return derive_table(table_spec(), results, meta(units, prof=profile(batch_sequences=2, steps=steps), priors=priors))
+    return derive_table(single_start(), results, meta(units, prof=profile(batch_sequences=2, steps=steps), priors=priors))
 
 
 def test_a_table_takes_a_row_run_under_a_raised_cap_when_its_kept_rows_converged():
@@ -183,7 +192,8 @@ def test_a_real_unit_carried_to_a_raised_cap_equals_the_unit_computed_under_it(t
     from tiny_run import tiny_table1
 
     tiny_table1(monkeypatch)
-    spec = catalog.load_table_spec("table1")
+    spec = copy.deepcopy(catalog.load_table_spec("table1"))
+    spec["objective"].pop("multi_start", None)  # one start per sequence: a unit that can be carried
     run = lambda steps, out: run_table(spec, {**catalog.get_profile("smoke", "table1"), "steps": steps},  # noqa: E731
                                        ["no-prior"], anny_body, "cpu", 0, tmp_path / out, backend_options={"jobs": 1})
     first = run(1000, "a")

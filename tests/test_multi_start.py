@@ -91,8 +91,10 @@ def test_fit_check_sets_the_candidate_rule_and_says_so():
     from benchmark.run.catalog import load_table_spec
     from benchmark.tools.fit_check import MULTI_START_NOISE, run_robustness, with_multi_start
 
-    spec = copy.deepcopy(load_table_spec("table1"))  # the loaded spec is shared: never change it in place
-    assert "multi_start" not in spec["objective"]  # not a rule of the committed protocol
+    committed = copy.deepcopy(load_table_spec("table1"))  # the loaded spec is shared: never change it in place
+    assert "table1's rule as committed" in with_multi_start(copy.deepcopy(committed), 2, "plateau")  # version 8's rule
+    spec = copy.deepcopy(committed)
+    del spec["objective"]["multi_start"]  # a protocol without several starts (versions 1-7)
     assert with_multi_start(spec, None) == "" and "multi_start" not in spec["objective"]
     note = with_multi_start(spec, 4)
     assert spec["objective"]["multi_start"] == {"starts": 4, "noise": MULTI_START_NOISE}
@@ -106,7 +108,7 @@ def test_fit_check_sets_the_candidate_rule_and_says_so():
     assert "choose: plateau, around: own" in note
     with pytest.raises(ValueError, match="add --multi-start K"):
         run_robustness("frequency-guided", around="own")
-    assert "multi_start" not in load_table_spec("table1")["objective"]
+    assert load_table_spec("table1")["objective"]["multi_start"] == committed["objective"]["multi_start"]  # unchanged
 
 
 def test_a_race_keeps_the_copy_lowest_at_the_first_plateau_and_holds_the_others():

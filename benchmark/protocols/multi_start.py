@@ -18,7 +18,7 @@ CHOOSE_RULES = ("end", "plateau")  # MultiStart.choose: after every copy's whole
 @dataclass(frozen=True)
 class MultiStart:
     """Several starts per sequence for the priors whose start is encoded (``objective.multi_start``,
-    a table1 version 8 candidate, docs/protocol.md): ``starts`` copies of every sequence are fitted
+    table1 from version 8, docs/protocol.md): ``starts`` copies of every sequence are fitted
     side by side from the encoded start (:func:`benchmark.protocols.start_search.encoded_start`),
     the fit's own start before it (the prior's mean latents, turned to the facing, the neutral
     shape), and ``starts - 2`` encoded starts with seeded Gaussian noise of

@@ -48,13 +48,15 @@ def with_multi_start(spec: dict, starts: int | None, choose: str = "end", around
 
     if isinstance(starts, bool) or not isinstance(starts, int) or starts < 1:
         raise ValueError(f"fit-check: --multi-start {starts!r}: give the number of starts, an integer >= 1")
+    committed = spec["objective"].get("multi_start")
     spec["objective"]["multi_start"] = {"starts": starts, "noise": MULTI_START_NOISE,
                                         **({"choose": choose} if choose != "end" else {}),
                                         **({"around": around} if around != "encoded" else {})}
     MultiStart.from_spec(spec["objective"]["multi_start"])
+    same = committed is not None and MultiStart.from_spec(committed) == MultiStart.from_spec(spec["objective"]["multi_start"])
     shown = (f", choose: {choose}" if choose != "end" else "") + (f", around: {around}" if around != "encoded" else "")
-    return (f", objective.multi_start {{starts: {starts}, noise: {MULTI_START_NOISE:g}{shown}}} (not table1's protocol "
-            "as committed)")
+    status = "table1's rule as committed" if same else "not table1's protocol as committed"
+    return f", objective.multi_start {{starts: {starts}, noise: {MULTI_START_NOISE:g}{shown}}} ({status})"
 
 
 def with_rate_scaled(spec: dict, rate_scaled: bool) -> str:
